@@ -1,0 +1,82 @@
+"""Command-line entry: one subcommand per pipeline stage.
+
+Snakemake rules and DVC stages run exactly these commands, e.g.
+``vtgen ingest --params params.yaml --out data/ingest``. Each stage reads its section of
+params.yaml, reads only the inputs named on its command line and writes one output folder
+atomically. Errors are reported in one line naming the file and the problem; set
+``VTGEN_DEBUG=1`` for a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from .config import ParamsError, load_params
+
+
+def _render(args, params) -> None:
+    from .synthetic import render_dataset
+
+    cfg = params["synthetic"]
+    info = render_dataset(Path(args.out), cfg["classes"], cfg["samples_per_class"], cfg["size"],
+                          cfg["aligned"], cfg["seed"], workers=cfg["workers"])
+    print(f"render: SYNTHETIC dataset, {len(cfg['classes'])} classes x {cfg['samples_per_class']} samples "
+          f"x 2 modalities at {cfg['size']} px in {info['seconds']:.1f} s -> {args.out}")
+
+
+def _ingest(args, params) -> None:
+    from .ingest import run_ingest
+
+    run_ingest(params["dataset"]["path"], params["dataset"]["source"], args.out, params["ingest"]["workers"])
+
+
+def _roi(args, params) -> None:
+    from .tiling import run_roi
+
+    run_roi(args.manifest, params["roi"], args.out, params["ingest"]["workers"])
+
+
+def _pairs(args, params) -> None:
+    from .pairing import run_pairing
+
+    run_pairing(args.tiles, params["pairing"], args.out)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="vtgen", description="Visual-tactile cross-modal data generation pipeline.")
+    sub = parser.add_subparsers(dest="stage", required=True)
+
+    def stage(name, func, help_text):
+        p = sub.add_parser(name, help=help_text)
+        p.add_argument("--params", default="params.yaml", help="the params file (default: params.yaml)")
+        p.add_argument("--out", required=True, help="output folder, replaced atomically")
+        p.set_defaults(func=func)
+        return p
+
+    stage("render", _render, "render the embedded SYNTHETIC ViTac-like dataset (generic layout)")
+    stage("ingest", _ingest, "read dataset.path into manifest.parquet and quarantine tables")
+    stage("roi", _roi, "cut manifest images into tiles at roi.size").add_argument(
+        "--manifest", required=True, help="manifest.parquet from the ingest stage")
+    stage("pairs", _pairs, "assign splits by source and build V2T/T2V pair tables").add_argument(
+        "--tiles", required=True, help="tiles.parquet from the roi stage")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        params = load_params(args.params)
+        args.func(args, params)
+    except (ParamsError, ValueError, OSError, RuntimeError) as exc:
+        if os.environ.get("VTGEN_DEBUG"):
+            raise
+        print(f"vtgen {args.stage}: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,65 @@
+"""Load and validate params.yaml, the one configuration shared by Snakemake and DVC.
+
+The schema lives in ``workflow/schemas/params.schema.yaml``; every key is required and
+unknown keys are refused, so a typo stops a run at start with the key named.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+import yaml
+
+PROJECT_ROOT = Path(__file__).resolve().parents[2]
+SCHEMA_PATH = PROJECT_ROOT / "workflow" / "schemas" / "params.schema.yaml"
+SYNTHETIC_PATH = "data/raw/synthetic"
+
+
+class ParamsError(ValueError):
+    """params.yaml is missing, unparsable or does not match the schema."""
+
+
+def _key_path(error: jsonschema.ValidationError) -> str:
+    return ".".join(str(p) for p in error.absolute_path) or "<top level>"
+
+
+def validate_params(params: Any, source: str = "params.yaml") -> dict:
+    """Check ``params`` against the schema; return it unchanged or raise ParamsError.
+
+    The message names every offending key, e.g. ``roi.size: 'big' is not of type 'integer'``
+    or ``roi: unknown key 'sise'``.
+    """
+    schema = yaml.safe_load(SCHEMA_PATH.read_text())
+    validator = jsonschema.Draft202012Validator(schema)
+    problems = []
+    for error in sorted(validator.iter_errors(params), key=lambda e: list(e.absolute_path)):
+        if error.validator == "additionalProperties":
+            known = set(error.schema.get("properties", {}))
+            for key in sorted(set(error.instance) - known):
+                problems.append(f"{_key_path(error)}: unknown key '{key}' (allowed: {', '.join(sorted(known))})")
+        elif error.validator == "required":
+            problems.append(f"{_key_path(error)}: {error.message}")
+        else:
+            problems.append(f"{_key_path(error)}: {error.message}")
+    if not problems and params["dataset"]["source"] == "synthetic" and params["dataset"]["path"] != SYNTHETIC_PATH:
+        problems.append(
+            f"dataset.path: must be '{SYNTHETIC_PATH}' when dataset.source is 'synthetic' "
+            f"(the render stage writes there), got '{params['dataset']['path']}'"
+        )
+    if problems:
+        raise ParamsError(f"{source} is invalid:\n  " + "\n  ".join(problems))
+    return params
+
+
+def load_params(path: str | Path = "params.yaml") -> dict:
+    """Read a params YAML file and validate it; raise ParamsError naming the file and key."""
+    path = Path(path)
+    if not path.is_file():
+        raise ParamsError(f"{path}: no such params file")
+    try:
+        params = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ParamsError(f"{path}: not valid YAML: {exc}") from exc
+    return validate_params(params, source=str(path))

@@ -1,0 +1,229 @@
+"""Ingest stage: read a dataset folder into a manifest of usable images and a quarantine table.
+
+Three layouts are read (``dataset.source`` in params.yaml):
+
+* ``generic``: ``<class>/<visual|tactile>/<name>.<ext>``; a visual and a tactile image with the
+  same name are one view of one sample (``pair_key`` = name).
+* ``synthetic``: the generic layout written by :mod:`vtgen.synthetic`, plus its ``dataset.json``.
+* ``vitac``: ``<cloth>t/``, ``<cloth>v/``, ``<cloth>t_test/``, ``<cloth>v_test/`` folders of JPEGs;
+  tactile files ``<frame>_<tile>.jpg`` (source = GelSight frame), visual files
+  ``IMG_<photo>_<tile>.jpg`` (source = photo). Modalities are not aligned; ``_test`` is the test split.
+
+Every file found ends up either in the manifest (possibly converted, with a note) or in the
+quarantine table with its reason; the counts in, kept and quarantined are printed and recorded.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import pandas as pd
+
+from .imageio import IMAGE_EXTENSIONS, ImageError, atomic_output_dir, file_md5, read_rgb8
+
+MODALITIES = ("visual", "tactile")
+MANIFEST_COLUMNS = [
+    "path", "md5", "modality", "class", "split", "source", "pair_key",
+    "width", "height", "channels", "bit_depth", "note",
+]
+QUARANTINE_COLUMNS = ["path", "class", "modality", "reason"]
+
+_VITAC_FOLDER = re.compile(r"^(?P<cloth>\d+)(?P<mod>[tv])(?P<test>_test)?$")
+_VITAC_TACTILE = re.compile(r"^(?P<frame>\d+)_(?P<tile>\d+)$")
+_VITAC_VISUAL = re.compile(r"^IMG_(?P<photo>\d+)_(?P<tile>\d+)$")
+
+
+class IngestError(RuntimeError):
+    """Nothing usable is left in the dataset; the message says what was found."""
+
+
+@dataclass
+class Candidate:
+    """A file a reader found, with what its place in the layout says about it."""
+
+    path: str
+    cls: str
+    modality: str
+    split: str = ""          # "test" or "train" when the dataset fixes it, "" when pairing decides
+    source: str = ""         # the physical capture the image came from (the unit of splitting)
+    pair_key: str = ""       # equal keys across modalities mark an aligned view; "" for none
+    note: str = ""
+
+
+def _quarantine(path, cls, modality, reason) -> dict:
+    return {"path": str(path), "class": cls, "modality": modality, "reason": reason}
+
+
+def _is_image_name(path: Path) -> bool:
+    return path.suffix.lower() in IMAGE_EXTENSIONS
+
+
+def read_generic(root: Path) -> tuple[list[Candidate], list[dict]]:
+    """Find images in the generic layout ``<class>/<visual|tactile>/<name>.<ext>``."""
+    candidates, quarantined = [], []
+    for class_dir in sorted(p for p in root.iterdir() if not p.name.startswith(".")):
+        if not class_dir.is_dir():
+            if class_dir.name != "dataset.json":
+                quarantined.append(_quarantine(class_dir, "", "", "file at the top level; expected <class>/<modality>/ folders"))
+            continue
+        cls = class_dir.name
+        found_any = False
+        for entry in sorted(class_dir.iterdir()):
+            if entry.name not in MODALITIES:
+                quarantined.append(_quarantine(entry, cls, "", f"not a modality folder (expected {' or '.join(MODALITIES)})"))
+                continue
+            for path in sorted(entry.rglob("*")):
+                if path.is_dir():
+                    continue
+                if not _is_image_name(path):
+                    quarantined.append(_quarantine(path, cls, entry.name, f"not an image file (extension '{path.suffix}')"))
+                    continue
+                found_any = True
+                candidates.append(Candidate(str(path), cls, entry.name, source=f"{cls}/{path.stem}", pair_key=path.stem))
+        if not found_any:
+            quarantined.append(_quarantine(class_dir, cls, "", "empty class: no image files"))
+    return candidates, quarantined
+
+
+def read_synthetic(root: Path) -> tuple[list[Candidate], list[dict]]:
+    """Read the rendered synthetic dataset (generic layout plus ``dataset.json``)."""
+    meta_path = root / "dataset.json"
+    if not meta_path.is_file():
+        raise IngestError(f"{root}: no dataset.json; is this a dataset written by `vtgen render`?")
+    meta = json.loads(meta_path.read_text())
+    if not meta.get("synthetic"):
+        raise IngestError(f"{meta_path}: does not declare a synthetic dataset")
+    return read_generic(root)
+
+
+def read_vitac(root: Path) -> tuple[list[Candidate], list[dict]]:
+    """Find images in the ViTac layout (``<cloth>t``, ``<cloth>v`` and their ``_test`` folders)."""
+    candidates, quarantined = [], []
+    for folder in sorted(p for p in root.iterdir() if not p.name.startswith(".")):
+        match = _VITAC_FOLDER.match(folder.name)
+        if not folder.is_dir() or not match:
+            if folder.is_dir() or _is_image_name(folder):
+                quarantined.append(_quarantine(folder, "", "", "not a ViTac folder (<cloth>t, <cloth>v, <cloth>t_test, <cloth>v_test)"))
+            continue
+        cls = match["cloth"]
+        modality = "tactile" if match["mod"] == "t" else "visual"
+        split = "test" if match["test"] else "train"
+        files = sorted(p for p in folder.rglob("*") if not p.is_dir())
+        if not any(_is_image_name(p) for p in files):
+            quarantined.append(_quarantine(folder, cls, modality, "empty folder: no image files"))
+        for path in files:
+            if not _is_image_name(path):
+                quarantined.append(_quarantine(path, cls, modality, f"not an image file (extension '{path.suffix}')"))
+                continue
+            pattern = _VITAC_TACTILE if modality == "tactile" else _VITAC_VISUAL
+            name = pattern.match(path.stem)
+            if name is None:
+                source, note = f"{cls}{match['mod']}:{path.stem}", "name does not follow ViTac naming; source is the file name"
+            elif modality == "tactile":
+                source, note = f"{cls}t:frame{name['frame']}", ""
+            else:
+                source, note = f"{cls}v:IMG_{name['photo']}", ""
+            candidates.append(Candidate(str(path), cls, modality, split=split, source=source, note=note))
+    return candidates, quarantined
+
+
+READERS = {"generic": read_generic, "synthetic": read_synthetic, "vitac": read_vitac}
+
+
+def _inspect(candidate: Candidate) -> dict:
+    """Decode one candidate fully; return a manifest row or a quarantine row (key 'reason')."""
+    try:
+        image = read_rgb8(candidate.path)
+    except ImageError as exc:
+        return _quarantine(candidate.path, candidate.cls, candidate.modality, str(exc))
+    row = asdict(candidate)
+    row["class"] = row.pop("cls")
+    row["note"] = "; ".join(n for n in (candidate.note, image.note) if n)
+    row.update(md5=file_md5(candidate.path), width=image.rgb.shape[1], height=image.rgb.shape[0],
+               channels=image.channels, bit_depth=image.bit_depth)
+    return row
+
+
+def ingest_dataset(root: str | Path, source: str, workers: int = 2, progress: bool = True) -> tuple[pd.DataFrame, pd.DataFrame, dict]:
+    """Read the dataset at ``root`` with the ``source`` reader.
+
+    Returns (manifest, quarantine, summary). Raises IngestError naming the folder when the
+    folder is missing or nothing usable is left after quarantine.
+    """
+    root = Path(root)
+    if source not in READERS:
+        raise IngestError(f"unknown dataset source '{source}' (known: {', '.join(READERS)})")
+    if not root.is_dir():
+        raise IngestError(f"{root}: dataset folder does not exist")
+    started = time.perf_counter()
+    candidates, quarantined = READERS[source](root)
+    entries_in = len(candidates) + len(quarantined)
+    rows = []
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        results = pool.map(_inspect, candidates, chunksize=16)
+        if progress:
+            from tqdm import tqdm
+
+            results = tqdm(results, total=len(candidates), desc="ingest", unit="img")
+        for result in results:
+            (quarantined if "reason" in result else rows).append(result)
+
+    manifest = pd.DataFrame(rows, columns=MANIFEST_COLUMNS)
+    # A class needs both modalities to be paired in either direction.
+    for cls, group in manifest.groupby("class"):
+        present = set(group["modality"])
+        if present != set(MODALITIES):
+            missing = (set(MODALITIES) - present).pop()
+            reason = f"class '{cls}' has no usable {missing} images, so it cannot be paired"
+            quarantined.extend(_quarantine(p, cls, m, reason) for p, m in zip(group["path"], group["modality"]))
+            manifest = manifest[manifest["class"] != cls]
+    manifest = manifest.sort_values(["class", "modality", "path"]).reset_index(drop=True)
+    quarantine = pd.DataFrame(quarantined, columns=QUARANTINE_COLUMNS)
+    seconds = time.perf_counter() - started
+    summary = {
+        "root": str(root),
+        "source": source,
+        "synthetic": source == "synthetic",
+        "entries_in": entries_in,  # image files found plus entries the layout rejected; = kept + quarantined
+        "images_decoded": len(candidates),
+        "kept": len(manifest),
+        "with_note": int((manifest["note"] != "").sum()),
+        "quarantined": len(quarantine),
+        "classes": sorted(manifest["class"].unique().tolist()),
+        "per_class_modality": {f"{c}/{m}": int(n) for (c, m), n in manifest.groupby(["class", "modality"]).size().items()},
+        "seconds": round(seconds, 3),
+        "images_per_second": round(len(candidates) / seconds, 1) if seconds > 0 else None,
+    }
+    if manifest.empty:
+        reasons = quarantine["reason"].value_counts().head(5).to_dict()
+        raise IngestError(
+            f"{root}: no usable images left ({len(candidates)} image files decoded, {len(quarantine)} quarantined; "
+            f"most common reasons: {reasons})"
+        )
+    return manifest, quarantine, summary
+
+
+def run_ingest(root: str | Path, source: str, out_dir: str | Path, workers: int = 2) -> dict:
+    """Stage entry: write manifest.parquet, quarantine.parquet/.csv and summary.json into ``out_dir``."""
+    manifest, quarantine, summary = ingest_dataset(root, source, workers)
+    with atomic_output_dir(out_dir) as tmp:
+        manifest.to_parquet(tmp / "manifest.parquet", index=False)
+        quarantine.to_parquet(tmp / "quarantine.parquet", index=False)
+        quarantine.to_csv(tmp / "quarantine.csv", index=False)
+        (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    print(
+        f"ingest: {summary['images_decoded']} image files in, {summary['kept']} kept "
+        f"({summary['with_note']} with a conversion note), {summary['quarantined']} quarantined entries; "
+        f"{summary['images_per_second']} images/s"
+    )
+    for reason, count in quarantine["reason"].value_counts().items():
+        print(f"  quarantined x{count}: {reason}")
+    notes = manifest.loc[manifest["note"] != "", "note"]
+    for note, count in notes.value_counts().items():
+        print(f"  warning: kept x{count} with conversion: {note}")
+    return summary

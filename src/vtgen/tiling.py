@@ -1,0 +1,114 @@
+"""ROI stage: cut every manifest image into square tiles at the model resolution.
+
+For each image a *region* is chosen first: for tactile frames the GelSight contact region
+(``roi.tactile_box``: ``auto`` detection, ``full`` frame, or a fixed ``[x, y, w, h]``), for
+visual images the whole photo. Inside the region, ``roi.visual_crop`` cuts one centred square
+(``centre``) or a grid of squares (``tiles``) whose side is ``roi.crop_fraction`` of the
+region's shorter side; each crop is resized to ``roi.size``. The same crop rule applies to
+both modalities, so aligned data (equal regions) gives aligned tiles with equal boxes.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pandas as pd
+
+from .imageio import atomic_output_dir, read_rgb8, write_png
+from .roi import Box, centre_box, contact_box, cut_tile, remove_markers, tile_boxes
+
+TILE_COLUMNS = [
+    "tile_path", "image_path", "class", "modality", "split", "source", "pair_key", "tile_index",
+    "box_x", "box_y", "box_w", "box_h",
+]
+
+
+def tactile_region(frame, tactile_box) -> Box:
+    """The part of a GelSight frame in contact: detected, the full frame, or a fixed box."""
+    height, width = frame.shape[:2]
+    if tactile_box == "auto":
+        return contact_box(frame)
+    if tactile_box == "full":
+        return Box(0, 0, width, height)
+    box = Box(*tactile_box)
+    if not box.fits(width, height):
+        raise ValueError(f"roi.tactile_box {list(tactile_box)} does not fit a {width}x{height} frame")
+    return box
+
+
+def crop_boxes(region: Box, visual_crop: str, crop_fraction: float) -> list[Box]:
+    """Square crops inside ``region``, in frame coordinates (see the module docstring)."""
+    if visual_crop == "centre":
+        local = [centre_box(region.w, region.h, crop_fraction)]
+    elif visual_crop == "tiles":
+        side = max(1, int(crop_fraction * min(region.w, region.h)))
+        local = tile_boxes(region.w, region.h, side)
+    else:
+        raise ValueError(f"roi.visual_crop must be 'centre' or 'tiles', got '{visual_crop}'")
+    return [Box(region.x + b.x, region.y + b.y, b.w, b.h) for b in local]
+
+
+def _tile_one(args) -> list[dict]:
+    index, row, roi, tiles_dir = args
+    image = read_rgb8(row["path"]).rgb
+    if row["modality"] == "tactile":
+        if roi["remove_markers"]:
+            image = remove_markers(image)
+        try:
+            region = tactile_region(image, roi["tactile_box"])
+        except ValueError as exc:
+            raise ValueError(f"{row['path']}: {exc}") from exc
+    else:
+        region = Box(0, 0, image.shape[1], image.shape[0])
+    out = []
+    folder = tiles_dir / row["modality"] / row["class"]
+    folder.mkdir(parents=True, exist_ok=True)
+    for k, box in enumerate(crop_boxes(region, roi["visual_crop"], roi["crop_fraction"])):
+        name = f"{index:06d}_{Path(row['path']).stem}_{k}.png"
+        write_png(folder / name, cut_tile(image, box, roi["size"]))
+        out.append({
+            "tile_path": f"{row['modality']}/{row['class']}/{name}", "image_path": row["path"],
+            "class": row["class"], "modality": row["modality"], "split": row["split"],
+            "source": row["source"], "pair_key": row["pair_key"], "tile_index": k,
+            "box_x": box.x, "box_y": box.y, "box_w": box.w, "box_h": box.h,
+        })
+    return out
+
+
+def cut_dataset_tiles(manifest: pd.DataFrame, roi: dict, tiles_dir: Path, workers: int = 2,
+                      progress: bool = True) -> pd.DataFrame:
+    """Cut all manifest images into ``tiles_dir``; return the tile table (``tile_path`` relative to it)."""
+    jobs = [(i, row, roi, Path(tiles_dir)) for i, row in enumerate(manifest.to_dict("records"))]
+    rows = []
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        results = pool.map(_tile_one, jobs, chunksize=16)
+        if progress:
+            from tqdm import tqdm
+
+            results = tqdm(results, total=len(jobs), desc="roi", unit="img")
+        for tiles in results:
+            rows.extend(tiles)
+    return pd.DataFrame(rows, columns=TILE_COLUMNS)
+
+
+def run_roi(manifest_path: str | Path, roi: dict, out_dir: str | Path, workers: int = 2) -> dict:
+    """Stage entry: write ``tiles/`` and ``tiles.parquet`` (+ summary.json) into ``out_dir``."""
+    manifest = pd.read_parquet(manifest_path)
+    started = time.perf_counter()
+    with atomic_output_dir(out_dir) as tmp:
+        tiles = cut_dataset_tiles(manifest, roi, tmp / "tiles", workers)
+        tiles.to_parquet(tmp / "tiles.parquet", index=False)
+        seconds = time.perf_counter() - started
+        summary = {
+            "images": len(manifest), "tiles": len(tiles), "tile_size": roi["size"],
+            "tiles_per_modality": tiles["modality"].value_counts().to_dict(),
+            "seconds": round(seconds, 3),
+            "images_per_second": round(len(manifest) / seconds, 1) if seconds > 0 else None,
+        }
+        (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    print(f"roi: {summary['images']} images -> {summary['tiles']} tiles of {roi['size']} px "
+          f"({summary['images_per_second']} images/s)")
+    return summary

@@ -1,0 +1,69 @@
+import copy
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from vtgen.config import ParamsError, load_params, validate_params
+
+
+def test_default_params_are_valid(default_params):
+    assert validate_params(default_params) is default_params
+
+
+def test_unknown_key_is_named(default_params):
+    params = copy.deepcopy(default_params)
+    params["roi"]["sise"] = 64
+    with pytest.raises(ParamsError, match=r"roi: unknown key 'sise'"):
+        validate_params(params)
+
+
+def test_unknown_section_is_named(default_params):
+    params = copy.deepcopy(default_params)
+    params["trainnig"] = {}
+    with pytest.raises(ParamsError, match=r"<top level>: unknown key 'trainnig'"):
+        validate_params(params)
+
+
+def test_wrong_type_is_named(default_params):
+    params = copy.deepcopy(default_params)
+    params["synthetic"]["samples_per_class"] = "sixty"
+    with pytest.raises(ParamsError, match=r"synthetic\.samples_per_class: 'sixty' is not of type 'integer'"):
+        validate_params(params)
+
+
+def test_missing_key_is_named(default_params):
+    params = copy.deepcopy(default_params)
+    del params["pairing"]["seed"]
+    with pytest.raises(ParamsError, match=r"pairing: 'seed' is a required property"):
+        validate_params(params)
+
+
+def test_synthetic_source_requires_render_path(default_params):
+    params = copy.deepcopy(default_params)
+    params["dataset"]["path"] = "elsewhere"
+    with pytest.raises(ParamsError, match="dataset.path: must be 'data/raw/synthetic'"):
+        validate_params(params)
+
+
+def test_load_params_reports_missing_file_and_bad_yaml(tmp_path):
+    with pytest.raises(ParamsError, match="no such params file"):
+        load_params(tmp_path / "nope.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("roi: [unclosed\n")
+    with pytest.raises(ParamsError, match="not valid YAML"):
+        load_params(bad)
+
+
+def test_cli_stops_at_start_naming_the_key(tmp_path, default_params):
+    params = copy.deepcopy(default_params)
+    params["roi"]["size"] = "big"
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(params))
+    result = subprocess.run([sys.executable, "-m", "vtgen", "ingest", "--params", str(path), "--out", str(tmp_path / "out")],
+                            capture_output=True, text=True)
+    assert result.returncode == 2
+    assert "roi.size: 'big' is not of type 'integer'" in result.stderr
+    assert "Traceback" not in result.stderr
+    assert not (tmp_path / "out").exists()

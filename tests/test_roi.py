@@ -1,0 +1,292 @@
+"""Tests of the pure ROI functions: geometry, tiles, markers and contact regions.
+
+Real GelSight tiles come from ../shared/data/vitac_cloth11 (never copied into the repo);
+the tests that need them are skipped when that folder is missing.
+"""
+
+from dataclasses import FrozenInstanceError
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from PIL import Image
+
+from vtgen.roi import Box, centre_box, contact_box, cut_tile, marker_mask, remove_markers, tile_boxes
+
+DATA = Path(__file__).resolve().parents[2] / "shared/data/vitac_cloth11"
+TACTILE = sorted((DATA / "11t").glob("*.jpg")) + sorted((DATA / "11t_test").glob("*.jpg"))
+needs_data = pytest.mark.skipif(not TACTILE, reason=f"real ViTac tiles not found under {DATA}")
+
+GEL_COLOUR = (168, 172, 190)  # light bluish grey of a flat, untouched gel
+DOT_COLOUR = (35, 35, 45)
+
+
+def load(path: Path) -> np.ndarray:
+    return np.asarray(Image.open(path).convert("RGB"))
+
+
+def iou(a: Box, b: Box) -> float:
+    ix = max(0, min(a.x + a.w, b.x + b.w) - max(a.x, b.x))
+    iy = max(0, min(a.y + a.h, b.y + b.h) - max(a.y, b.y))
+    inter = ix * iy
+    return inter / (a.w * a.h + b.w * b.h - inter)
+
+
+def draw_dots(image: np.ndarray, centres, radius: int) -> np.ndarray:
+    for c in centres:
+        cv2.circle(image, c, radius, DOT_COLOUR, -1, lineType=cv2.LINE_AA)
+    return image
+
+
+def dot_grid(size: int, spacing: int = 40) -> list[tuple[int, int]]:
+    return [(x, y) for y in range(spacing // 2, size, spacing) for x in range(spacing // 2, size, spacing)]
+
+
+def gel_frame(texture: np.ndarray | None = None, rect: Box | None = None, size: int = 256) -> np.ndarray:
+    """A synthetic GelSight frame: flat gel with sensor noise, optional texture in ``rect``, dots everywhere."""
+    rng = np.random.default_rng(0)
+    frame = np.zeros((size, size, 3)) + GEL_COLOUR + rng.normal(0, 1.5, (size, size, 3))
+    if rect is not None:
+        frame[rect.y : rect.y + rect.h, rect.x : rect.x + rect.w] = texture[: rect.h, : rect.w]
+    frame = np.clip(frame, 0, 255).astype(np.uint8)
+    return draw_dots(frame, dot_grid(size), radius=5)
+
+
+# --- Box ---------------------------------------------------------------------------------
+
+
+def test_box_validates_and_is_frozen():
+    Box(0, 0, 1, 1)
+    for bad in [(0, 0, 0, 5), (0, 0, 5, 0), (-1, 0, 5, 5), (0, -1, 5, 5), (0, 0, -3, 5)]:
+        with pytest.raises(ValueError):
+            Box(*bad)
+    with pytest.raises(FrozenInstanceError):
+        Box(0, 0, 1, 1).x = 3
+
+
+def test_box_fits():
+    box = Box(10, 20, 30, 40)
+    assert box.fits(40, 60)
+    assert not box.fits(39, 60)
+    assert not box.fits(40, 59)
+
+
+# --- centre_box --------------------------------------------------------------------------
+
+
+def test_centre_box_is_centred_square_of_the_asked_fraction():
+    assert centre_box(300, 200) == Box(50, 0, 200, 200)
+    assert centre_box(300, 200, 0.5) == Box(100, 50, 100, 100)
+    assert centre_box(200, 300, 0.33) == Box(67, 117, 66, 66)  # floor(0.33 * 200) = 66
+    assert centre_box(101, 100) == Box(0, 0, 100, 100)  # odd leftover pixel goes right
+
+
+@pytest.mark.parametrize("fraction", [0.0, -0.1, 1.01])
+def test_centre_box_rejects_fraction_out_of_range(fraction):
+    with pytest.raises(ValueError):
+        centre_box(100, 100, fraction)
+
+
+def test_centre_box_rejects_empty_square():
+    with pytest.raises(ValueError):
+        centre_box(10, 10, 0.05)
+
+
+# --- tile_boxes --------------------------------------------------------------------------
+
+
+def test_tile_boxes_non_overlapping_grid_in_row_major_order():
+    boxes = tile_boxes(256, 256, 64)
+    assert len(boxes) == 16
+    assert boxes[0] == Box(0, 0, 64, 64)
+    assert boxes[1] == Box(64, 0, 64, 64)  # along the row first
+    assert boxes[4] == Box(0, 64, 64, 64)
+    assert boxes[-1] == Box(192, 192, 64, 64)
+
+
+def test_tile_boxes_grid_is_centred_and_in_bounds():
+    boxes = tile_boxes(100, 70, 30)
+    assert len(boxes) == 3 * 2
+    assert all(b.fits(100, 70) and b.w == b.h == 30 for b in boxes)
+    left, top = min(b.x for b in boxes), min(b.y for b in boxes)
+    right, bottom = 100 - max(b.x + b.w for b in boxes), 70 - max(b.y + b.h for b in boxes)
+    assert (left, right) == (5, 5) and (top, bottom) == (5, 5)
+    boxes = tile_boxes(101, 30, 30)  # odd leftover: 11 px, 5 left, 6 right
+    assert [b.x for b in boxes] == [5, 35, 65]
+
+
+def test_tile_boxes_stride_overlaps():
+    boxes = tile_boxes(64, 64, 32, stride=16)
+    assert len(boxes) == 9
+    assert [b.x for b in boxes[:3]] == [0, 16, 32]
+    assert [b.y for b in boxes[::3]] == [0, 16, 32]
+    overlap = boxes[0].x + boxes[0].w - boxes[1].x
+    assert overlap == 16
+
+
+@pytest.mark.parametrize(("tile", "stride"), [(0, None), (-4, None), (65, None), (16, 0)])
+def test_tile_boxes_rejects_bad_sizes(tile, stride):
+    with pytest.raises(ValueError):
+        tile_boxes(64, 80, tile, stride)
+
+
+# --- cut_tile ----------------------------------------------------------------------------
+
+
+def test_cut_tile_sizes_and_interpolation():
+    rng = np.random.default_rng(1)
+    image = rng.integers(0, 256, (120, 200, 3), dtype=np.uint8)
+    box = Box(40, 10, 100, 100)
+    crop = image[10:110, 40:140]
+    same = cut_tile(image, box, 100)
+    assert same.dtype == np.uint8 and np.array_equal(same, crop)
+    same[0, 0] = 0  # a copy, not a view
+    assert np.array_equal(image[10:110, 40:140], crop)
+    small = cut_tile(image, box, 50)
+    assert small.shape == (50, 50, 3) and small.dtype == np.uint8
+    assert np.array_equal(small, cv2.resize(crop, (50, 50), interpolation=cv2.INTER_AREA))
+    large = cut_tile(image, box, 256)
+    assert large.shape == (256, 256, 3) and large.dtype == np.uint8
+    assert np.array_equal(large, cv2.resize(crop, (256, 256), interpolation=cv2.INTER_CUBIC))
+    assert cut_tile(image, Box(0, 0, 200, 120), 64).shape == (64, 64, 3)
+
+
+def test_cut_tile_rejects_box_that_does_not_fit():
+    image = np.zeros((120, 200, 3), np.uint8)
+    with pytest.raises(ValueError, match=r"Box\(x=150.*200x120"):
+        cut_tile(image, Box(150, 0, 60, 60), 32)
+    with pytest.raises(ValueError):
+        cut_tile(image, Box(0, 100, 30, 30), 32)
+
+
+def test_cut_tile_rejects_non_rgb_uint8():
+    with pytest.raises(ValueError, match="uint8 RGB"):
+        cut_tile(np.zeros((64, 64), np.uint8), Box(0, 0, 8, 8), 8)
+    with pytest.raises(ValueError, match="uint8 RGB"):
+        cut_tile(np.zeros((64, 64, 3), np.float32), Box(0, 0, 8, 8), 8)
+
+
+# --- marker_mask and remove_markers ------------------------------------------------------
+
+
+def gradient_background(size: int = 256) -> np.ndarray:
+    ramp = np.linspace(0, 1, size)
+    image = np.empty((size, size, 3))
+    image[..., 0] = 90 + 110 * ramp[None, :]
+    image[..., 1] = 150 + 20 * ramp[:, None]
+    image[..., 2] = 120 + 80 * ramp[:, None]
+    image += np.random.default_rng(2).normal(0, 2, image.shape)
+    return np.clip(image, 0, 255).astype(np.uint8)
+
+
+def test_marker_mask_finds_dots_at_known_positions_on_a_gradient():
+    size, radius = 256, 4
+    rng = np.random.default_rng(3)
+    centres = [(x + int(rng.integers(-4, 5)), y + int(rng.integers(-4, 5))) for x, y in dot_grid(size, 32)]
+    image = draw_dots(gradient_background(size), centres, radius)
+    mask = marker_mask(image)
+    assert mask.dtype == bool and mask.shape == (size, size)
+
+    yy, xx = np.mgrid[:size, :size]
+    distance = np.min([np.hypot(xx - cx, yy - cy) for cx, cy in centres], axis=0)
+    dots = distance <= radius
+    assert mask[dots].mean() > 0.9  # recall of dot pixels
+    false = mask & (distance > radius + 3)  # the mask is dilated by 2 px: allow that margin
+    assert false.sum() < 0.002 * size * size
+    hit = [mask[cy, cx] for cx, cy in centres]
+    assert all(hit)
+
+
+def test_marker_mask_is_empty_on_smooth_background():
+    assert marker_mask(gradient_background()).mean() < 0.001
+    flat = np.full((128, 128, 3), GEL_COLOUR, np.uint8)
+    assert not marker_mask(flat).any()
+
+
+@needs_data
+@pytest.mark.parametrize("path", TACTILE[::7], ids=lambda p: p.name)
+def test_marker_mask_on_real_tile_is_a_regular_grid_of_dots(path):
+    mask = marker_mask(load(path))
+    count, _, stats, centroids = cv2.connectedComponentsWithStats(mask.astype(np.uint8))
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    assert 10 <= count - 1 <= 200
+    assert 0.02 < mask.mean() < 0.15
+    typical = (areas > 0.5 * np.median(areas)) & (areas < 2 * np.median(areas))
+    assert typical.sum() >= 9  # most dots have similar sizes (the rest are cut by the border)
+    points = centroids[1:][typical]
+    gaps = np.linalg.norm(points[:, None] - points[None], axis=2)
+    np.fill_diagonal(gaps, np.inf)
+    nearest = gaps.min(axis=1)
+    assert np.all((nearest > 0.85 * np.median(nearest)) & (nearest < 1.3 * np.median(nearest)))
+
+
+@needs_data
+def test_remove_markers_paints_dots_out_and_leaves_the_rest():
+    frame = load(TACTILE[0])
+    before = frame.copy()
+    cleaned = remove_markers(frame)
+    assert np.array_equal(frame, before)  # input untouched
+    assert cleaned.dtype == np.uint8 and cleaned.shape == frame.shape and cleaned is not frame
+
+    mask = marker_mask(frame)
+    surroundings = cv2.medianBlur(frame, 41).astype(float)  # a reference with the dots blurred away
+    error_before = np.abs(frame[mask] - surroundings[mask]).mean()
+    error_after = np.abs(cleaned[mask] - surroundings[mask]).mean()
+    assert error_after < 0.4 * error_before
+
+    far = ~cv2.dilate(mask.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
+    assert np.array_equal(cleaned[far], frame[far])
+
+
+def test_remove_markers_without_dots_returns_an_equal_copy():
+    image = gradient_background(64)
+    cleaned = remove_markers(image)
+    assert np.array_equal(cleaned, image) and cleaned is not image
+
+
+# --- contact_box -------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def real_texture() -> np.ndarray:
+    if not TACTILE:
+        pytest.skip(f"real ViTac tiles not found under {DATA}")
+    return remove_markers(load(TACTILE[7]))
+
+
+@needs_data
+@pytest.mark.parametrize(
+    "rect",
+    [Box(70, 50, 120, 140), Box(10, 100, 90, 80), Box(0, 0, 200, 120), Box(120, 120, 136, 136)],
+    ids=str,
+)
+def test_contact_box_recovers_pasted_real_texture(real_texture, rect):
+    box = contact_box(gel_frame(real_texture, rect))
+    assert iou(box, rect) > 0.9, box
+
+
+def test_contact_box_recovers_zero_mean_synthetic_texture():
+    rng = np.random.default_rng(4)
+    rect = Box(40, 60, 150, 110)
+    noise = cv2.GaussianBlur(rng.normal(0, 1, (rect.h, rect.w)), (0, 0), 2)
+    texture = GEL_COLOUR + (noise / noise.std() * 15)[..., None] * [1.0, 0.8, 0.6]
+    assert iou(contact_box(gel_frame(texture, rect)), rect) > 0.9
+
+
+def test_contact_box_without_contact_gives_whole_frame():
+    assert contact_box(gel_frame()) == Box(0, 0, 256, 256)
+    assert contact_box(np.full((100, 150, 3), GEL_COLOUR, np.uint8)) == Box(0, 0, 150, 100)
+
+
+@needs_data
+def test_contact_box_ignores_contact_below_min_fraction(real_texture):
+    frame = gel_frame(real_texture, Box(100, 100, 40, 40))  # 2.4 % of the frame
+    assert contact_box(frame) == Box(0, 0, 256, 256)
+    assert iou(contact_box(frame, min_fraction=0.01), Box(100, 100, 40, 40)) > 0.8
+
+
+@needs_data
+@pytest.mark.parametrize("path", TACTILE, ids=lambda p: p.name)
+def test_contact_box_of_all_contact_real_tile_is_whole_frame(path):
+    assert contact_box(load(path)) == Box(0, 0, 256, 256)
