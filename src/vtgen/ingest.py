@@ -84,7 +84,8 @@ def read_generic(root: Path) -> tuple[list[Candidate], list[dict]]:
                     quarantined.append(_quarantine(path, cls, entry.name, f"not an image file (extension '{path.suffix}')"))
                     continue
                 found_any = True
-                candidates.append(Candidate(str(path), cls, entry.name, source=f"{cls}/{path.stem}", pair_key=path.stem))
+                view = f"{cls}/{path.stem}"
+                candidates.append(Candidate(str(path), cls, entry.name, source=view, pair_key=view))
         if not found_any:
             quarantined.append(_quarantine(class_dir, cls, "", "empty class: no image files"))
     return candidates, quarantined

@@ -80,11 +80,11 @@ def build_pairs(tiles: pd.DataFrame, direction: str, seed: int) -> tuple[pd.Data
     """
     source_mod, target_mod = DIRECTIONS[direction]
     rng = np.random.default_rng([seed, 0 if direction == "v2t" else 1])
-    keyed = tiles.assign(key=list(zip(tiles["pair_key"], tiles["tile_index"], tiles["box_x"], tiles["box_y"],
+    keyed = tiles.assign(key=list(zip(tiles["class"], tiles["pair_key"], tiles["tile_index"], tiles["box_x"], tiles["box_y"],
                                       tiles["box_w"], tiles["box_h"])))
     inputs = keyed[keyed["modality"] == source_mod]
     targets = keyed[keyed["modality"] == target_mod]
-    aligned_input = {k: row for k, row in zip(inputs["key"], inputs.to_dict("records")) if k[0] != ""}
+    aligned_input = {k: row for k, row in zip(inputs["key"], inputs.to_dict("records")) if k[1] != ""}
     rows, warnings = [], []
     for (split, cls), group in targets.groupby(["split", "class"], sort=True):
         pool = inputs[(inputs["split"] == split) & (inputs["class"] == cls)].to_dict("records")

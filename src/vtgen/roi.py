@@ -94,11 +94,14 @@ def marker_mask(frame: np.ndarray, max_dot: int | None = None) -> np.ndarray:
     A dot is a small, dark, roughly round (or square) blob no wider than ``max_dot`` pixels
     (default: an eighth of the shorter image side, 32 px on a 256 px tile). Method: a 5 px
     median blur of the grey image removes fine texture, a black-hat (closing minus image)
-    with an elliptical kernel larger than a dot keeps the dark blobs, Otsu thresholds it,
-    and connected components that are too small (< 9 px), too large (> ``max_dot**2``),
-    too elongated (aspect ratio > 3, unless cut by the image border) or too sparse (filling
-    < 30 % of their bounding box) are dropped. The mask is then dilated by 2 px so that it
-    covers the dots' soft edges. A frame without dark blobs gives an all-False mask.
+    with an elliptical kernel larger than a dot keeps the dark blobs, and Otsu thresholds
+    it (at least 20 grey levels deep). Connected components that are too small (< 9 px), too
+    large (> ``max_dot**2``), too elongated (aspect ratio > 3, unless cut by the image
+    border) or too sparse (filling < 40 % of their bounding box) are dropped. The same is
+    done at a second, deeper Otsu threshold (computed over the candidates only), which
+    separates very dark dots from a moderately dark region they touch; the union is kept.
+    The mask is then dilated by 2 px so that it covers the dots' soft edges. A frame
+    without dark blobs gives an all-False mask.
     """
     _check_rgb(frame)
     height, width = frame.shape[:2]
@@ -109,15 +112,22 @@ def marker_mask(frame: np.ndarray, max_dot: int | None = None) -> np.ndarray:
     if blackhat.max() < 20:  # nothing clearly darker than its surroundings
         return np.zeros((height, width), bool)
     level = max(threshold_otsu(blackhat), 20)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats((blackhat > level).astype(np.uint8), connectivity=8)
+    deeper = max(threshold_otsu(blackhat[blackhat > level]), level) if (blackhat > level).sum() > 1 else level
+    dots = _dot_like(blackhat > level, max_dot) | _dot_like(blackhat > deeper, max_dot)
+    return cv2.dilate(dots.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))).astype(bool)
+
+
+def _dot_like(candidates: np.ndarray, max_dot: int) -> np.ndarray:
+    """The connected components of ``candidates`` that are shaped like marker dots."""
+    height, width = candidates.shape
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(candidates.astype(np.uint8), connectivity=8)
     keep = np.zeros(count, bool)
     for i in range(1, count):
         x, y, w, h, area = stats[i]
         on_border = x == 0 or y == 0 or x + w == width or y + h == height
         elongated = max(w, h) > 3 * min(w, h) and not on_border
-        keep[i] = 9 <= area <= max_dot**2 and not elongated and area >= 0.3 * w * h
-    mask = keep[labels].astype(np.uint8)
-    return cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))).astype(bool)
+        keep[i] = 9 <= area <= max_dot**2 and not elongated and area >= 0.4 * w * h
+    return keep[labels]
 
 
 def remove_markers(frame: np.ndarray, radius: int = 3) -> np.ndarray:
@@ -163,7 +173,7 @@ def contact_box(frame: np.ndarray, min_fraction: float = 0.05, flat_level: float
     colour = frame.astype(np.float64)
     background = np.median(colour[border & valid], axis=0)
     deviation = np.sqrt(((colour - background) ** 2).mean(axis=2)).round().astype(np.uint8)
-    deviation = median(deviation, footprint_rectangle((window, window)), mask=valid)
+    deviation = np.where(valid, median(deviation, footprint_rectangle((window, window)), mask=valid), 0)
     if deviation.max() <= flat_level:
         return whole
     level = max(threshold_otsu(deviation), flat_level)
