@@ -93,27 +93,29 @@ def marker_mask(frame: np.ndarray, max_dot: int | None = None) -> np.ndarray:
 
     A dot is a small, dark, roughly round (or square) blob no wider than ``max_dot`` pixels
     (default: an eighth of the shorter image side, 32 px on a 256 px tile). Method: a 5 px
-    median blur of the grey image removes fine texture, a black-hat (closing minus image)
-    with an elliptical kernel larger than a dot keeps the dark blobs, and Otsu thresholds
-    it (at least 20 grey levels deep). Connected components that are too small (< 9 px), too
-    large (> ``max_dot**2``), too elongated (aspect ratio > 3, unless cut by the image
-    border) or too sparse (filling < 40 % of their bounding box) are dropped. The same is
-    done at a second, deeper Otsu threshold (computed over the candidates only), which
-    separates very dark dots from a moderately dark region they touch; the union is kept.
-    The mask is then dilated by 2 px so that it covers the dots' soft edges. A frame
-    without dark blobs gives an all-False mask.
+    median blur of the grey image removes fine texture; a black-hat (closing minus image,
+    with an elliptical kernel larger than a dot) divided by the closing gives each pixel's
+    depth relative to its surroundings, so dots in darker parts of the frame count as much
+    as dots in bright ones; Otsu thresholds the depth (at least 0.2). Connected components
+    that are too small (< 9 px), too large (> ``max_dot**2``), too elongated (aspect ratio
+    > 3, unless cut by the image border) or too sparse (filling < 40 % of their bounding
+    box) are dropped. The same is done at a second, deeper Otsu threshold computed over the
+    candidates only, which separates dots from a darker region they touch; the union is
+    kept. The mask is then dilated by 2 px to cover the dots' soft edges. A frame without
+    dark blobs gives an all-False mask.
     """
     _check_rgb(frame)
     height, width = frame.shape[:2]
     max_dot = max(3, min(height, width) // 8) if max_dot is None else max_dot
     grey = cv2.medianBlur(cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY), 5)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (_odd(1.25 * max_dot),) * 2)
-    blackhat = cv2.morphologyEx(grey, cv2.MORPH_BLACKHAT, kernel)
-    if blackhat.max() < 20:  # nothing clearly darker than its surroundings
+    closed = cv2.morphologyEx(grey, cv2.MORPH_CLOSE, kernel).astype(np.float64)
+    depth = (closed - grey) / np.maximum(closed, 1)
+    if depth.max() <= 0.2:  # nothing clearly darker than its surroundings
         return np.zeros((height, width), bool)
-    level = max(threshold_otsu(blackhat), 20)
-    deeper = max(threshold_otsu(blackhat[blackhat > level]), level) if (blackhat > level).sum() > 1 else level
-    dots = _dot_like(blackhat > level, max_dot) | _dot_like(blackhat > deeper, max_dot)
+    level = max(threshold_otsu(depth), 0.2)
+    deeper = max(threshold_otsu(depth[depth > level]), level)
+    dots = _dot_like(depth > level, max_dot) | _dot_like(depth > deeper, max_dot)
     return cv2.dilate(dots.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))).astype(bool)
 
 
