@@ -194,8 +194,7 @@ def test_marker_mask_finds_dots_at_known_positions_on_a_gradient():
     assert mask[dots].mean() > 0.9  # recall of dot pixels
     false = mask & (distance > radius + 3)  # the mask is dilated by 2 px: allow that margin
     assert false.sum() < 0.002 * size * size
-    hit = [mask[cy, cx] for cx, cy in centres]
-    assert all(hit)
+    assert all(mask[cy, cx] for cx, cy in centres)
 
 
 def test_marker_mask_is_empty_on_smooth_background():
@@ -222,8 +221,9 @@ def test_marker_mask_on_real_tile_is_a_regular_grid_of_dots(path):
 
 
 @needs_data
-def test_remove_markers_paints_dots_out_and_leaves_the_rest():
-    frame = load(TACTILE[0])
+@pytest.mark.parametrize("path", TACTILE[::7], ids=lambda p: p.name)
+def test_remove_markers_paints_dots_out_and_leaves_the_rest(path):
+    frame = load(path)
     before = frame.copy()
     cleaned = remove_markers(frame)
     assert np.array_equal(frame, before)  # input untouched
@@ -235,8 +235,7 @@ def test_remove_markers_paints_dots_out_and_leaves_the_rest():
     error_after = np.abs(cleaned[mask] - surroundings[mask]).mean()
     assert error_after < 0.4 * error_before
 
-    far = ~cv2.dilate(mask.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
-    assert np.array_equal(cleaned[far], frame[far])
+    assert np.array_equal(cleaned[~mask], frame[~mask])  # only marker pixels change
 
 
 def test_remove_markers_without_dots_returns_an_equal_copy():

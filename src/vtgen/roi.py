@@ -163,8 +163,9 @@ def contact_box(frame: np.ndarray, min_fraction: float = 0.05, flat_level: float
       border itself is contact, so the frame is all contact, as ViTac tiles usually are;
     - the detected region covers less than ``min_fraction`` of the frame.
 
-    Caveat: the background is one colour, so a strong illumination gradient across a flat
-    gel would read as contact.
+    Caveats: the background is one colour, so a strong illumination gradient across a flat
+    gel would read as contact; the border strip must be mostly flat gel (a contact region
+    covering most of the border makes the frame count as all contact).
     """
     _check_rgb(frame)
     height, width = frame.shape[:2]
@@ -172,14 +173,17 @@ def contact_box(frame: np.ndarray, min_fraction: float = 0.05, flat_level: float
     valid = ~marker_mask(frame)
     border = np.ones((height, width), bool)
     border[window:-window, window:-window] = False
+    if not (border & valid).any():
+        return whole
     colour = frame.astype(np.float64)
     background = np.median(colour[border & valid], axis=0)
     deviation = np.sqrt(((colour - background) ** 2).mean(axis=2)).round().astype(np.uint8)
     deviation = np.where(valid, median(deviation, footprint_rectangle((window, window)), mask=valid), 0)
-    if deviation.max() <= flat_level:
+    values = deviation[valid]
+    if values.max() <= flat_level:
         return whole
-    level = max(threshold_otsu(deviation), flat_level)
-    if np.median(deviation[deviation <= level]) > flat_level:
+    level = max(threshold_otsu(values), flat_level)
+    if np.median(values[values <= level]) > flat_level:
         return whole
     contact = (deviation > level).astype(np.uint8)
     contact = cv2.morphologyEx(contact, cv2.MORPH_CLOSE, np.ones((window, window), np.uint8))
