@@ -24,7 +24,7 @@ tile still resolves yarns (at 64 px a yarn is 3-9 px) and a large one shows more
 from __future__ import annotations
 
 import json
-import shutil
+import multiprocessing
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -33,6 +33,9 @@ from typing import Callable, Sequence
 
 import cv2
 import numpy as np
+from tqdm import tqdm
+
+from .imageio import atomic_output_dir, write_png
 
 FABRICS: tuple[str, ...] = (
     "plain_weave",
@@ -93,10 +96,10 @@ def _smoothstep(t: np.ndarray) -> np.ndarray:
     return t * t * (3.0 - 2.0 * t)
 
 
-def _lowfreq(size: int, cells: int, rng: np.random.Generator) -> np.ndarray:
-    """Smooth random field, zero mean and unit std, with about `cells` blobs across."""
+def _lowfreq(size: int, cells: int, rng: np.random.Generator, rows: int | None = None) -> np.ndarray:
+    """Smooth random field of shape (rows or size, size), zero mean, unit std, about `cells` blobs across."""
     grid = rng.standard_normal((cells + 1, cells + 1)).astype(np.float32)
-    field = cv2.resize(grid, (size, size), interpolation=cv2.INTER_CUBIC)
+    field = cv2.resize(grid, (size, rows or size), interpolation=cv2.INTER_CUBIC)
     return (field - field.mean()) / (field.std() + 1e-6)
 
 
@@ -142,7 +145,8 @@ def _finish(height: np.ndarray, albedo: np.ndarray, rng: np.random.Generator, fu
     """Add hairiness (soft bumps a few pixels wide, scaled by `fuzz`), normalise the relief to [0, 1]
     (robust top) and pack a Patch."""
     size = height.shape[1]
-    bumps = cv2.GaussianBlur(rng.standard_normal(height.shape).astype(np.float32), (0, 0), 1.5 * _pixel_scale(size))
+    white = rng.standard_normal(height.shape).astype(np.float32)
+    bumps = cv2.GaussianBlur(white, (0, 0), 1.5 * _pixel_scale(size))
     height = height * (1.0 + fuzz * bumps / (bumps.std() + 1e-6))
     h = height - height.min()
     top = np.percentile(h, 99.5)
@@ -181,10 +185,9 @@ def _woven(
     sink: float = 0.45,
     fibre: float = 0.12,
     tone: float = 0.05,
-) -> tuple[Patch, np.ndarray, np.ndarray]:
+) -> Patch:
     """Render a woven patch from a weave matrix (rows = weft picks, columns = warp ends, 1 = warp on top).
 
-    Returns the patch plus the (u, v) fabric coordinates (used by prints).
     Per-sample jitter: zoom, warp and weft spacing, yarn width, rotation, fibre noise, dye.
     """
     weave = np.asarray(weave, np.float32)
@@ -218,7 +221,7 @@ def _woven(
     a_warp = warp_c * (warp_tone * (1 + 0.08 * fib_warp))[..., None]
     a_weft = weft_c * (weft_tone * (1 + 0.08 * fib_weft))[..., None]
     albedo = np.where(warp_top, a_warp, a_weft)
-    return _finish(height, albedo, rng), u, v
+    return _finish(height, albedo, rng)
 
 
 def _twill(over: int, under: int, direction: int = 1) -> np.ndarray:
@@ -229,15 +232,16 @@ def _twill(over: int, under: int, direction: int = 1) -> np.ndarray:
 
 
 def _plain_weave(size: int, rng: np.random.Generator) -> Patch:
-    return _woven(size, rng, [[1, 0], [0, 1]], period=10, width=0.8, warp_rgb=(205, 195, 175), weft_rgb=(205, 195, 175))[0]
+    cotton = (205, 195, 175)
+    return _woven(size, rng, [[1, 0], [0, 1]], period=10, width=0.8, warp_rgb=cotton, weft_rgb=cotton)
 
 
 def _twill_2_1(size: int, rng: np.random.Generator) -> Patch:
-    return _woven(size, rng, _twill(2, 1), period=8, width=0.9, warp_rgb=(165, 145, 100), weft_rgb=(150, 132, 92))[0]
+    return _woven(size, rng, _twill(2, 1), period=8, width=0.9, warp_rgb=(165, 145, 100), weft_rgb=(150, 132, 92))
 
 
 def _twill_3_1(size: int, rng: np.random.Generator) -> Patch:
-    return _woven(size, rng, _twill(3, 1), period=7, width=0.92, warp_rgb=(72, 88, 115), weft_rgb=(95, 105, 120))[0]
+    return _woven(size, rng, _twill(3, 1), period=7, width=0.92, warp_rgb=(72, 88, 115), weft_rgb=(95, 105, 120))
 
 
 def _satin(size: int, rng: np.random.Generator) -> Patch:
@@ -245,19 +249,19 @@ def _satin(size: int, rng: np.random.Generator) -> Patch:
     r, c = np.mgrid[0:5, 0:5]
     weave = (c != (2 * r) % 5).astype(np.float32)
     return _woven(size, rng, weave, period=6, width=0.97, warp_rgb=(218, 172, 178), weft_rgb=(200, 160, 165),
-                  sink=0.7, fibre=0.05, tone=0.02)[0]
+                  sink=0.7, fibre=0.05, tone=0.02)
 
 
 def _basket_weave(size: int, rng: np.random.Generator) -> Patch:
     """2/2 basket: pairs of ends and picks interlace like one yarn of a plain weave."""
     weave = np.kron([[1, 0], [0, 1]], np.ones((2, 2)))
-    return _woven(size, rng, weave, period=9, width=0.95, warp_rgb=(192, 172, 136), weft_rgb=(150, 128, 95))[0]
+    return _woven(size, rng, weave, period=9, width=0.95, warp_rgb=(192, 172, 136), weft_rgb=(150, 128, 95))
 
 
 def _denim(size: int, rng: np.random.Generator) -> Patch:
     """3/1 warp-faced twill, indigo warp and white weft, slubby (uneven) yarns."""
     return _woven(size, rng, _twill(3, 1, direction=-1), period=9, width=0.9, warp_rgb=(38, 58, 108),
-                  weft_rgb=(225, 220, 205), tone=0.12, fibre=0.16)[0]
+                  weft_rgb=(225, 220, 205), tone=0.12, fibre=0.16)
 
 
 def _herringbone(size: int, rng: np.random.Generator) -> Patch:
@@ -266,7 +270,7 @@ def _herringbone(size: int, rng: np.random.Generator) -> Patch:
     left, right = _twill(2, 2, 1), _twill(2, 2, -1)
     cols = [left[:, c % 4] if (c // k) % 2 == 0 else right[:, c % 4] for c in range(2 * k)]
     weave = np.stack(cols, axis=1)
-    return _woven(size, rng, weave, period=7, width=0.9, warp_rgb=(68, 68, 72), weft_rgb=(178, 172, 160))[0]
+    return _woven(size, rng, weave, period=7, width=0.9, warp_rgb=(68, 68, 72), weft_rgb=(178, 172, 160))
 
 
 # --------------------------------------------------------------------------- knits
@@ -420,7 +424,7 @@ def _print_layer(size: int, rng: np.random.Generator) -> tuple[np.ndarray, np.nd
 
 def _printed(size: int, rng: np.random.Generator) -> Patch:
     """A white plain weave carrying a procedural colour print (the print has no relief)."""
-    base, _, _ = _woven(size, rng, [[1, 0], [0, 1]], period=7, width=0.9, warp_rgb=(236, 232, 224),
+    base = _woven(size, rng, [[1, 0], [0, 1]], period=7, width=0.9, warp_rgb=(236, 232, 224),
                         weft_rgb=(236, 232, 224), fibre=0.08, tone=0.03)
     ink, cover = _print_layer(size, rng)
     ink = ink * (0.9 + 0.1 * base.height)[..., None]  # dye soaks less into the gaps: slightly lighter print
@@ -484,7 +488,7 @@ def render_visual(patch: Patch, rng: np.random.Generator) -> np.ndarray:
     blur, vignetting, exposure jitter and shot/read noise.
     """
     h = patch.height.astype(np.float32)
-    size = h.shape[1]
+    rows, size = h.shape
     s = _pixel_scale(size)
     nx, ny, nz = _normals(h * (3.0 * s))
     light = _light(rng.uniform(200, 250), rng.uniform(35, 55))  # from the upper left
@@ -494,9 +498,9 @@ def render_visual(patch: Patch, rng: np.random.Generator) -> np.ndarray:
     shade = (0.5 + 0.65 * lambert) * occlusion
     img = patch.albedo * shade[..., None]
     img = cv2.GaussianBlur(img, (0, 0), rng.uniform(0.8, 1.3) * s)
-    y, x = np.mgrid[0:size, 0:h.shape[0]].astype(np.float32)
-    cx, cy = (size - 1) / 2 * (1 + rng.uniform(-0.2, 0.2, 2))
-    r2 = ((x - cx) ** 2 + (y - cy) ** 2) / (0.5 * size * size)
+    y, x = np.mgrid[0:rows, 0:size].astype(np.float32)
+    cx, cy = np.array([size - 1, rows - 1]) / 2 * (1 + rng.uniform(-0.2, 0.2, 2))
+    r2 = ((x - cx) ** 2 + (y - cy) ** 2) / (0.5 * size * rows)
     vignette = 1.0 - rng.uniform(0.1, 0.25) * r2
     img = img * (vignette * rng.uniform(0.9, 1.15))[..., None]
     noise = rng.standard_normal(img.shape).astype(np.float32)
@@ -504,7 +508,7 @@ def render_visual(patch: Patch, rng: np.random.Generator) -> np.ndarray:
     return _to_uint8_srgb(img)
 
 
-GEL_RGB = (128.0, 104.0, 116.0)  # flat-gel colour of the ViTac GelSight tiles (sRGB, 0-255)
+GEL_RGB = (138.0, 115.0, 127.0)  # flat-gel colour, tuned so frames match the ViTac GelSight tiles (sRGB, 0-255)
 # colours of the red, green and blue LEDs as the camera sees them through the gel (not pure primaries)
 _GEL_LIGHTS = np.array([[1.0, 0.25, 0.4], [0.3, 1.0, 0.45], [0.35, 0.35, 1.0]], np.float32)
 _GEL_GAIN = 130.0  # 8-bit levels per unit of (n . l) change
@@ -523,11 +527,14 @@ def render_gelsight(patch: Patch, rng: np.random.Generator) -> np.ndarray:
     s = _pixel_scale(size)
     smooth = cv2.GaussianBlur(h, (0, 0), rng.uniform(1.2, 1.8) * s)
     lo, hi = np.percentile(smooth, [1.0, 99.5])
-    press = rng.uniform(0.4, 0.7) * max(hi - lo, 1e-6)  # depth of relief that touches the gel
-    pressure = 1.0 + 0.25 * _lowfreq(size, 2, rng)  # uneven pressing over the frame
-    contact = np.clip(smooth - (hi - press * pressure), 0.0, None) / press
-    contact = cv2.GaussianBlur(contact, (0, 0), 0.7 * s)
-    z = contact * (2.2 * s) + _lowfreq(size, 2, rng) * (1.5 * s)  # pixels; plus a gentle global bend
+    press = rng.uniform(0.4, 0.7) * (hi - lo)  # depth of relief that touches the gel
+    pressure = 1.0 + 0.25 * _lowfreq(size, 2, rng, rows)  # uneven pressing over the frame
+    if press > 1e-4:
+        contact = np.clip(smooth - (hi - press * pressure), 0.0, None) / press
+        contact = cv2.GaussianBlur(contact, (0, 0), 0.7 * s)
+    else:  # a flat surface leaves the gel flat
+        contact = np.zeros_like(smooth)
+    z = contact * (2.2 * s) + _lowfreq(size, 2, rng, rows) * (1.5 * s)  # pixels; plus a gentle global bend
     nx, ny, nz = _normals(z.astype(np.float32))
 
     y, x = np.mgrid[0:rows, 0:size].astype(np.float32)
@@ -549,7 +556,7 @@ def render_gelsight(patch: Patch, rng: np.random.Generator) -> np.ndarray:
     ix, iy = np.round(gx).astype(np.int64), np.round(gy).astype(np.int64)
     cell = (iy % 16) * 16 + (ix % 16)
     shift = rng.normal(0.0, 1.0 * s, (256, 2))
-    radius = 6.0 * s * rng.uniform(0.85, 1.15, 256)[cell]
+    radius = 7.5 * s * rng.uniform(0.85, 1.15, 256)[cell]
     dx = (gx - ix) * spacing - shift[cell, 0]
     dy = (gy - iy) * spacing - shift[cell, 1]
     d = (np.abs(dx) ** 3 + np.abs(dy) ** 3) ** (1 / 3)
@@ -570,11 +577,6 @@ def _sample_rngs(seed: int, class_index: int, index: int) -> list[np.random.Gene
     return [np.random.default_rng(c) for c in children]
 
 
-def _write_png(path: Path, rgb: np.ndarray) -> None:
-    if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-        raise OSError(f"could not write {path}")
-
-
 def _render_sample(job: tuple[str, str, int, int, int, bool, int]) -> None:
     """Render and write one sample (worker entry point; module level so it pickles)."""
     root, fabric, class_index, index, size, aligned, seed = job
@@ -583,8 +585,8 @@ def _render_sample(job: tuple[str, str, int, int, int, bool, int]) -> None:
     patch_t = patch_v if aligned else render_patch(fabric, size, g_patch_t)
     vis_name, tac_name = (f"s{index:04d}", f"s{index:04d}") if aligned else (f"v{index:04d}", f"t{index:04d}")
     base = Path(root) / fabric
-    _write_png(base / "visual" / f"{vis_name}.png", render_visual(patch_v, g_vis))
-    _write_png(base / "tactile" / f"{tac_name}.png", render_gelsight(patch_t, g_tac))
+    write_png(base / "visual" / f"{vis_name}.png", render_visual(patch_v, g_vis))
+    write_png(base / "tactile" / f"{tac_name}.png", render_gelsight(patch_t, g_tac))
 
 
 def _init_worker() -> None:
@@ -606,8 +608,8 @@ def render_dataset(
     Writes ``<class>/visual/<name>.png`` and ``<class>/tactile/<name>.png`` (8-bit RGB) and
     ``dataset.json``. Aligned: sample i is ``s<i:04d>`` in both modalities (same patch, same
     view). Unaligned: ``v<i:04d>`` and ``t<i:04d>`` from independent patches of the class.
-    Output is built in ``<out_dir>.tmp`` and renamed into place at the end, replacing any old
-    `out_dir`. Sample i of a class draws from SeedSequence([seed, FABRICS.index(class), i]),
+    Output is built in a temporary sibling and renamed into place at the end, replacing any old
+    `out_dir` (:func:`vtgen.imageio.atomic_output_dir`). Sample i of a class draws from SeedSequence([seed, FABRICS.index(class), i]),
     so the files do not depend on `workers`. Returns the dataset.json dict plus "seconds".
     """
     t0 = time.perf_counter()
@@ -627,10 +629,6 @@ def render_dataset(
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers!r}")
 
-    out_dir = Path(out_dir)
-    tmp = out_dir.with_name(out_dir.name + ".tmp")
-    if tmp.exists():
-        shutil.rmtree(tmp)
     info = {
         "synthetic": True,
         "generator": "vtgen.synthetic",
@@ -640,34 +638,22 @@ def render_dataset(
         "samples_per_class": int(samples_per_class),
         "classes": classes,
     }
-    try:
+    with atomic_output_dir(out_dir) as tmp:
         for c in classes:
             (tmp / c / "visual").mkdir(parents=True)
             (tmp / c / "tactile").mkdir(parents=True)
         jobs = [(str(tmp), c, FABRICS.index(c), i, int(size), bool(aligned), int(seed))
                 for c in classes for i in range(int(samples_per_class))]
-        from tqdm import tqdm
-
         with tqdm(total=len(jobs), desc="render synthetic", unit="sample", disable=not progress) as bar:
             if workers == 1:
                 for job in jobs:
                     _render_sample(job)
                     bar.update()
             else:
-                with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker) as pool:
+                # spawn, not fork: a forked child inherits OpenCV's thread pool in a locked state
+                context = multiprocessing.get_context("spawn")
+                with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker) as pool:
                     for _ in pool.map(_render_sample, jobs, chunksize=4):
                         bar.update()
         (tmp / "dataset.json").write_text(json.dumps(info, indent=2) + "\n")
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    if out_dir.exists():
-        old = out_dir.with_name(out_dir.name + ".old")
-        if old.exists():
-            shutil.rmtree(old)
-        out_dir.rename(old)
-        tmp.rename(out_dir)
-        shutil.rmtree(old)
-    else:
-        tmp.rename(out_dir)
     return {**info, "seconds": round(time.perf_counter() - t0, 3)}
