@@ -1,6 +1,7 @@
 """End-to-end: Snakemake and DVC run the data stages on a tiny configuration and agree."""
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -85,12 +86,19 @@ def test_snakemake_and_dvc_run_the_same_commands_and_outputs(snakemake_project, 
     run(["dvc", "repro"], project)
     assert "up to date" in run(["dvc", "status"], project).stdout.lower()
 
-    # the same command per stage
+    # the same command, inputs and outputs per stage
     dry = run(["snakemake", "--cores", "2", "-n", "-p", "--forceall"], smk).stdout
+    rules = {m["rule"]: m for m in re.finditer(
+        r"rule (?P<rule>\w+):\n    input: (?P<input>[^\n]*)\n    output: (?P<output>[^\n]*)\n.*?Shell command: (?P<cmd>[^\n]*)",
+        dry, flags=re.S)}
     stages = yaml.safe_load((project / "dvc.yaml").read_text())["stages"]
-    assert sorted(stages) == sorted(STAGES)
+    assert sorted(stages) == sorted(rules) == sorted(STAGES)
+    params = tiny_params()
     for name, stage in stages.items():
-        assert stage["cmd"] in dry, f"DVC stage {name} runs a command Snakemake does not: {stage['cmd']}"
+        deps = {d.replace("${dataset.path}", params["dataset"]["path"]) for d in stage["deps"]}
+        assert stage["cmd"] == rules[name]["cmd"], name
+        assert deps == set(rules[name]["input"].split(", ")), name
+        assert set(stage["outs"]) == set(rules[name]["output"].split(", ")), name
 
     # DVC tracks exactly the folders Snakemake writes, with the same files and contents
     lock = yaml.safe_load((project / "dvc.lock").read_text())["stages"]

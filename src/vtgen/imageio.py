@@ -13,7 +13,8 @@ import shutil
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Iterable, Iterator, TypeVar
 
 import numpy as np
 from PIL import Image
@@ -106,6 +107,25 @@ def _to_rgb8(image: Image.Image, mode: str, tile_modes: list[str]) -> tuple[np.n
         notes.append(f"mode {mode} converted to RGB")
     rgb = image.convert("RGB") if mode != "RGB" else image
     return np.array(rgb, dtype=np.uint8), "; ".join(notes)
+
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def map_images(func: Callable[[T], R], items: Iterable[T], total: int, workers: int, desc: str,
+               progress: bool = True) -> Iterator[R]:
+    """``func`` over ``items`` on ``workers`` threads, results in order, with a tqdm bar.
+
+    Threads suffice: image decoding, resizing and encoding release the GIL.
+    """
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        results = pool.map(func, items, chunksize=16)
+        if progress:
+            from tqdm import tqdm
+
+            results = tqdm(results, total=total, desc=desc, unit="img")
+        yield from results
 
 
 def write_png(path: str | Path, rgb: np.ndarray) -> None:

@@ -18,13 +18,12 @@ from __future__ import annotations
 import json
 import re
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import pandas as pd
 
-from .imageio import IMAGE_EXTENSIONS, ImageError, atomic_output_dir, file_md5, read_rgb8
+from .imageio import IMAGE_EXTENSIONS, ImageError, atomic_output_dir, file_md5, map_images, read_rgb8
 
 MODALITIES = ("visual", "tactile")
 MANIFEST_COLUMNS = [
@@ -165,14 +164,8 @@ def ingest_dataset(root: str | Path, source: str, workers: int = 2, progress: bo
     candidates, quarantined = READERS[source](root)
     entries_in = len(candidates) + len(quarantined)
     rows = []
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        results = pool.map(_inspect, candidates, chunksize=16)
-        if progress:
-            from tqdm import tqdm
-
-            results = tqdm(results, total=len(candidates), desc="ingest", unit="img")
-        for result in results:
-            (quarantined if "reason" in result else rows).append(result)
+    for result in map_images(_inspect, candidates, len(candidates), workers, "ingest", progress):
+        (quarantined if "reason" in result else rows).append(result)
 
     manifest = pd.DataFrame(rows, columns=MANIFEST_COLUMNS)
     # A class needs both modalities to be paired in either direction.

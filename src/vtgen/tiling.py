@@ -12,12 +12,11 @@ from __future__ import annotations
 
 import json
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pandas as pd
 
-from .imageio import atomic_output_dir, read_rgb8, write_png
+from .imageio import atomic_output_dir, map_images, read_rgb8, write_png
 from .roi import Box, centre_box, contact_box, cut_tile, remove_markers, tile_boxes
 
 TILE_COLUMNS = [
@@ -83,14 +82,8 @@ def cut_dataset_tiles(manifest: pd.DataFrame, roi: dict, tiles_dir: Path, worker
     """Cut all manifest images into ``tiles_dir``; return the tile table (``tile_path`` relative to it)."""
     jobs = [(i, row, roi, Path(tiles_dir)) for i, row in enumerate(manifest.to_dict("records"))]
     rows = []
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        results = pool.map(_tile_one, jobs, chunksize=16)
-        if progress:
-            from tqdm import tqdm
-
-            results = tqdm(results, total=len(jobs), desc="roi", unit="img")
-        for tiles in results:
-            rows.extend(tiles)
+    for tiles in map_images(_tile_one, jobs, len(jobs), workers, "roi", progress):
+        rows.extend(tiles)
     return pd.DataFrame(rows, columns=TILE_COLUMNS)
 
 

@@ -21,6 +21,7 @@ rule ingest:
     input:
         config["dataset"]["path"],
         "src/vtgen/ingest.py",
+        "src/vtgen/imageio.py",
     output:
         directory("data/ingest"),
     params:
@@ -38,6 +39,7 @@ rule roi:
         "data/ingest",
         "src/vtgen/tiling.py",
         "src/vtgen/roi.py",
+        "src/vtgen/imageio.py",
     output:
         directory("data/roi"),
     params:
