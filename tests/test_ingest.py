@@ -29,6 +29,8 @@ def messy_generic(tmp_path):
     for name in ("x", "y"):
         write_image(root / "silk" / "visual" / f"{name}.png", random_rgb(rng))
     (root / "linen" / "depth").mkdir(parents=True)
+    (root / "README.md").write_text("how this data was collected\n")
+    write_image(root / "stray.png", random_rgb(rng))
     return root
 
 
@@ -43,6 +45,8 @@ def test_generic_reader_keeps_good_converts_and_quarantines_bad(messy_generic):
     assert "empty class" in reasons["empty_class"]
     assert "no usable tactile" in reasons["silk/visual/x.png"] and "silk/visual/y.png" in reasons
     assert "not a modality folder" in reasons["linen/depth"]
+    assert "image at the top level" in reasons["stray.png"]
+    assert summary["ignored_top_level_files"] == ["README.md"]
 
     notes = dict(zip(manifest["path"].map(lambda p: p.split("raw/")[1]), manifest["note"]))
     assert "grayscale" in notes["cotton/tactile/gray.png"]
@@ -99,6 +103,7 @@ def test_vitac_sample_is_read_with_its_splits(vitac_root, tmp_path):
     summary = run_ingest(vitac_root, "vitac", tmp_path / "ingest")
     manifest = pd.read_parquet(tmp_path / "ingest" / "manifest.parquet")
     assert len(manifest) == 60 and summary["kept"] == 60 and summary["quarantined"] == 0
+    assert summary["ignored_top_level_files"] == ["SOURCE.md"]
     counts = manifest.groupby(["modality", "split"]).size().to_dict()
     assert counts == {("tactile", "train"): 20, ("tactile", "test"): 10, ("visual", "train"): 20, ("visual", "test"): 10}
     assert set(manifest["class"]) == {"11"}

@@ -67,8 +67,8 @@ def read_generic(root: Path) -> tuple[list[Candidate], list[dict]]:
     candidates, quarantined = [], []
     for class_dir in sorted(p for p in root.iterdir() if not p.name.startswith(".")):
         if not class_dir.is_dir():
-            if class_dir.name != "dataset.json":
-                quarantined.append(_quarantine(class_dir, "", "", "file at the top level; expected <class>/<modality>/ folders"))
+            if _is_image_name(class_dir):
+                quarantined.append(_quarantine(class_dir, "", "", "image at the top level; expected <class>/<modality>/ folders"))
             continue
         cls = class_dir.name
         found_any = False
@@ -184,6 +184,8 @@ def ingest_dataset(root: str | Path, source: str, workers: int = 2, progress: bo
         "source": source,
         "synthetic": source == "synthetic",
         "entries_in": entries_in,  # image files found plus entries the layout rejected; = kept + quarantined
+        # documentation and metadata beside the class folders (e.g. SOURCE.md, dataset.json) are not data
+        "ignored_top_level_files": sorted(p.name for p in root.iterdir() if p.is_file() and not _is_image_name(p)),
         "images_decoded": len(candidates),
         "kept": len(manifest),
         "with_note": int((manifest["note"] != "").sum()),
@@ -215,6 +217,8 @@ def run_ingest(root: str | Path, source: str, out_dir: str | Path, workers: int 
         f"({summary['with_note']} with a conversion note), {summary['quarantined']} quarantined entries; "
         f"{summary['images_per_second']} images/s"
     )
+    if summary["ignored_top_level_files"]:
+        print(f"  not data, ignored: {', '.join(summary['ignored_top_level_files'])}")
     for reason, count in quarantine["reason"].value_counts().items():
         print(f"  quarantined x{count}: {reason}")
     notes = manifest.loc[manifest["note"] != "", "note"]
