@@ -67,6 +67,8 @@ def test_failed_stage_keeps_previous_output_and_leaves_no_temporary(tmp_path):
     with pytest.raises(ValueError):
         run_roi(tmp_path / "manifest.parquet", {**ROI, "tactile_box": [0, 0, 999, 999]}, tmp_path / "roi")
     pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "roi" / "tiles.parquet"), before)
+    preview = read_rgb8(tmp_path / "roi" / "preview.png").rgb
+    assert preview.shape == (24 + 96, 120 + 8 * 96, 3)  # header, one class row, 4 visual + 4 tactile slots
     assert sorted(p.name for p in tmp_path.iterdir()) == ["manifest.parquet", "raw", "roi"]
 
 

@@ -1,5 +1,7 @@
 """ROI stage: cut every manifest image into square tiles at the model resolution.
 
+Writes ``tiles/``, ``tiles.parquet`` and ``preview.png`` (visual and tactile tiles per class).
+
 For each image a *region* is chosen first: for tactile frames the GelSight contact region
 (``roi.tactile_box``: ``auto`` detection, ``full`` frame, or a fixed ``[x, y, w, h]``), for
 visual images the whole photo. Inside the region, ``roi.visual_crop`` cuts one centred square
@@ -14,6 +16,8 @@ import json
 import time
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pandas as pd
 
 from .imageio import atomic_output_dir, map_images, read_rgb8, write_png
@@ -87,6 +91,26 @@ def cut_dataset_tiles(manifest: pd.DataFrame, roi: dict, tiles_dir: Path, worker
     return pd.DataFrame(rows, columns=TILE_COLUMNS)
 
 
+def tile_preview(tiles: pd.DataFrame, tiles_dir: Path, per_class: int = 4, side: int = 96) -> np.ndarray:
+    """A contact sheet for a person to look at: one row per class, ``per_class`` visual tiles then
+    as many tactile tiles (aligned views side by side when the data has them), class name on the left."""
+    label_w, header = 120, 24
+    classes = sorted(tiles["class"].unique())
+    sheet = np.full((header + side * len(classes), label_w + 2 * per_class * side, 3), 255, np.uint8)
+    text = dict(fontFace=cv2.FONT_HERSHEY_SIMPLEX, fontScale=0.45, color=(0, 0, 0), thickness=1, lineType=cv2.LINE_AA)
+    for m, modality in enumerate(("visual", "tactile")):
+        cv2.putText(sheet, modality, (label_w + m * per_class * side + 4, 16), **text)
+    for r, cls in enumerate(classes):
+        cv2.putText(sheet, str(cls)[:14], (4, header + r * side + side // 2), **text)
+        for m, modality in enumerate(("visual", "tactile")):
+            chosen = tiles[(tiles["class"] == cls) & (tiles["modality"] == modality)].sort_values(["pair_key", "tile_index"])
+            for c, path in enumerate(chosen["tile_path"].head(per_class)):
+                tile = cv2.resize(read_rgb8(tiles_dir / path).rgb, (side, side), interpolation=cv2.INTER_NEAREST)
+                x = label_w + (m * per_class + c) * side
+                sheet[header + r * side:header + (r + 1) * side, x:x + side] = tile
+    return sheet
+
+
 def run_roi(manifest_path: str | Path, roi: dict, out_dir: str | Path, workers: int = 2) -> dict:
     """Stage entry: write ``tiles/`` and ``tiles.parquet`` (+ summary.json) into ``out_dir``."""
     manifest = pd.read_parquet(manifest_path)
@@ -94,6 +118,7 @@ def run_roi(manifest_path: str | Path, roi: dict, out_dir: str | Path, workers: 
     with atomic_output_dir(out_dir) as tmp:
         tiles = cut_dataset_tiles(manifest, roi, tmp / "tiles", workers)
         tiles.to_parquet(tmp / "tiles.parquet", index=False)
+        write_png(tmp / "preview.png", tile_preview(tiles, tmp / "tiles"))
         seconds = time.perf_counter() - started
         summary = {
             "images": len(manifest), "tiles": len(tiles), "tile_size": roi["size"],
