@@ -95,9 +95,7 @@ def build_pairs(tiles: pd.DataFrame, direction: str, seed: int) -> tuple[pd.Data
             elif pool:
                 source_row, aligned = pool[rng.integers(len(pool))], False
             else:
-                source_row = None
-            if source_row is None:
-                continue
+                continue  # reported below as unpaired
             rows.append({
                 "direction": direction, "split": split, "class": cls,
                 "input_path": source_row["path"], "target_path": target["path"],
