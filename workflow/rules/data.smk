@@ -1,5 +1,6 @@
 # Data stages: render (synthetic only) -> ingest -> roi -> pairs.
-# Each `params:` entry names the params.yaml section the stage reads, so changing it reruns the stage.
+# Each `params:` entry names the params.yaml values the stage reads, so changing one reruns the stage.
+# The roi stage reads the images the manifest lists, so it declares the dataset folder too.
 
 
 rule render:
@@ -37,6 +38,7 @@ rule roi:
     """Cut every image into tiles at roi.size (GelSight contact region for tactile frames)."""
     input:
         "data/ingest",
+        config["dataset"]["path"],
         "src/vtgen/tiling.py",
         "src/vtgen/roi.py",
         "src/vtgen/imageio.py",
@@ -44,6 +46,7 @@ rule roi:
         directory("data/roi"),
     params:
         roi=config["roi"],
+        workers=config["ingest"]["workers"],
     benchmark:
         "logs/benchmarks/roi.tsv"
     shell:
