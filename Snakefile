@@ -18,9 +18,10 @@ validate_params(config)
 
 
 include: "workflow/rules/data.smk"
+include: "workflow/rules/translation.smk"
 
 
 rule all:
     default_target: True
     input:
-        rules.pairs.output,
+        expand("data/generated/{direction}", direction=DIRECTIONS),

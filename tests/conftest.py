@@ -26,11 +26,17 @@ def default_params() -> dict:
     return yaml.safe_load((REPO / "params.yaml").read_text())
 
 
+TINY_MODEL = dict(size=32, ngf=8, ndf=8, kernel=4, discriminator="patch", patch_layers=2, batch_size=2, iterations=10)
+
+
 def tiny_params(**overrides) -> dict:
     """params.yaml with small settings for end-to-end tests; ``overrides`` replace whole sections' keys."""
     params = copy.deepcopy(yaml.safe_load((REPO / "params.yaml").read_text()))
     params["synthetic"].update(classes=["plain_weave", "denim", "felt"], samples_per_class=6, size=64, workers=2)
     params["roi"].update(size=32)
+    params["presets"]["fast"].update(TINY_MODEL)
+    params["translation"].update(checkpoint_every=5, log_every=2)
+    params["generate"].update(batch_size=8)
     for section, values in overrides.items():
         params[section].update(values)
     return params

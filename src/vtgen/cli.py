@@ -45,6 +45,25 @@ def _pairs(args, params) -> None:
     run_pairing(args.tiles, params["pairing"], args.out)
 
 
+def _train(args, params) -> None:
+    from .train import run_train
+
+    run_train(params, args.direction, args.scope, args.pairs, args.out, args.checkpoints)
+
+
+def _generate(args, params) -> None:
+    from .generate import run_generate
+
+    run_generate(params, args.direction, args.pairs, args.models, args.out)
+
+
+def _translate(args, params) -> None:
+    from .generate import translate_files
+
+    translate_files(args.model, args.inputs, args.out, params["translation"]["device"] if params else "cpu",
+                    args.direction)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vtgen", description="Visual-tactile cross-modal data generation pipeline.")
     sub = parser.add_subparsers(dest="stage", required=True)
@@ -62,13 +81,30 @@ def build_parser() -> argparse.ArgumentParser:
         "--manifest", required=True, help="manifest.parquet from the ingest stage")
     stage("pairs", _pairs, "assign splits by source and build V2T/T2V pair tables").add_argument(
         "--tiles", required=True, help="tiles.parquet from the roi stage")
+    train = stage("train", _train, "train the conditional GAN of one direction and translation.scope entry")
+    train.add_argument("--direction", required=True, choices=["v2t", "t2v"])
+    train.add_argument("--scope", required=True, help="'all' or a class name listed in translation.scope")
+    train.add_argument("--pairs", required=True, help="folder written by the pairs stage")
+    train.add_argument("--checkpoints", default="checkpoints",
+                       help="root of the resumable checkpoints (default: checkpoints)")
+    generate = stage("generate", _generate, "translate the test split (and a share of training inputs)")
+    generate.add_argument("--direction", required=True, choices=["v2t", "t2v"])
+    generate.add_argument("--pairs", required=True, help="folder written by the pairs stage")
+    generate.add_argument("--models", required=True, help="folder holding one trained model per scope entry")
+    translate = sub.add_parser("translate", help="translate your own images or folders with a trained model")
+    translate.add_argument("inputs", nargs="+", help="images (PNG, JPEG, ... or .npy) or folders of them")
+    translate.add_argument("--model", required=True, help="a trained model folder (models/<direction>/<scope>) or its generator.pt")
+    translate.add_argument("--out", required=True, help="folder for the translated PNGs")
+    translate.add_argument("--direction", choices=["v2t", "t2v"], help="refuse a model of the other direction")
+    translate.add_argument("--params", default=None, help="params file for translation.device (default: CPU)")
+    translate.set_defaults(func=_translate)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        params = load_params(args.params)
+        params = load_params(args.params) if args.params else None
         args.func(args, params)
     except (ParamsError, ValueError, OSError, RuntimeError) as exc:
         if os.environ.get("VTGEN_DEBUG"):

@@ -48,9 +48,30 @@ def validate_params(params: Any, source: str = "params.yaml") -> dict:
             f"dataset.path: must be '{SYNTHETIC_PATH}' when dataset.source is 'synthetic' "
             f"(the render stage writes there), got '{params['dataset']['path']}'"
         )
+    if not problems:
+        problems += _translation_problems(params)
     if problems:
         raise ParamsError(f"{source} is invalid:\n  " + "\n  ".join(problems))
     return params
+
+
+def _translation_problems(params: dict) -> list[str]:
+    """Cross-key checks of the translation section that the schema cannot express."""
+    problems = []
+    preset, presets = params["translation"]["preset"], params["presets"]
+    if preset not in presets:
+        problems.append(f"translation.preset: '{preset}' is not a block of presets (defined: {', '.join(presets)})")
+    if params["dataset"]["source"] == "synthetic":
+        classes = set(params["synthetic"]["classes"])
+        for entry in params["translation"]["scope"]:
+            if entry != "all" and entry not in classes:
+                problems.append(f"translation.scope: '{entry}' is neither 'all' nor one of synthetic.classes")
+    return problems
+
+
+def model_settings(params: dict) -> dict:
+    """The preset block that translation.preset names: network and training settings."""
+    return params["presets"][params["translation"]["preset"]]
 
 
 def load_params(path: str | Path = "params.yaml") -> dict:

@@ -1,0 +1,279 @@
+"""Conditional GAN networks: a U-Net generator and two discriminators (pure torch).
+
+Images are ``N x 3 x S x S`` tensors in ``[-1, 1]`` with ``S`` a power of two >= 16.
+A discriminator sees the condition image and the (real or generated) image stacked on the
+channel axis (:func:`conditional_pair`) and returns raw logits (no sigmoid), to be used with
+``BCEWithLogitsLoss``.
+
+* :class:`UNetGenerator` - pix2pix-style encoder/decoder with skip connections, down to 1x1.
+* :class:`GlobalDiscriminator` - four stride-2 convs and one linear layer: one logit per image.
+* :class:`PatchDiscriminator` - PatchGAN: a map of logits, one per overlapping patch.
+
+Every network is initialised with :func:`init_weights` (DCGAN/pix2pix convention).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+ALLOWED_KERNELS = (4, 5)
+DISCRIMINATOR_KINDS = ("global", "patch")
+MIN_SIZE = 16
+
+
+def check_size(size: int) -> int:
+    """Return ``size`` if it is a power of two >= 16; raise ValueError otherwise."""
+    if isinstance(size, bool) or not isinstance(size, int) or size < MIN_SIZE or size & (size - 1):
+        raise ValueError(f"size must be a power of two >= {MIN_SIZE}, got {size!r}")
+    return size
+
+
+def check_kernel(kernel: int) -> int:
+    """Return ``kernel`` if it is 4 or 5; raise ValueError otherwise."""
+    if isinstance(kernel, bool) or kernel not in ALLOWED_KERNELS:
+        raise ValueError(f"kernel size must be one of {ALLOWED_KERNELS}, got {kernel!r}")
+    return kernel
+
+
+def resampling_padding(kernel: int) -> tuple[int, int]:
+    """``(padding, output_padding)`` making a stride-2 conv halve and a stride-2 transposed conv
+    double an even spatial size exactly (the conv ignores ``output_padding``)."""
+    check_kernel(kernel)
+    return (1, 0) if kernel == 4 else (2, 1)
+
+
+def downsampling_conv(in_channels: int, out_channels: int, kernel: int, bias: bool) -> nn.Conv2d:
+    """Stride-2 convolution that maps ``H x W`` to ``H/2 x W/2`` for even sizes."""
+    padding, _ = resampling_padding(kernel)
+    return nn.Conv2d(in_channels, out_channels, kernel, stride=2, padding=padding, bias=bias)
+
+
+def upsampling_conv(in_channels: int, out_channels: int, kernel: int, bias: bool) -> nn.ConvTranspose2d:
+    """Stride-2 transposed convolution that maps ``H x W`` to ``2H x 2W``."""
+    padding, output_padding = resampling_padding(kernel)
+    return nn.ConvTranspose2d(
+        in_channels, out_channels, kernel, stride=2, padding=padding, output_padding=output_padding, bias=bias
+    )
+
+
+def init_weights(module: nn.Module) -> None:
+    """DCGAN/pix2pix initialisation of one module (use with ``net.apply(init_weights)``):
+    conv and transposed-conv weights ~ N(0, 0.02), BatchNorm weights ~ N(1, 0.02), their biases 0.
+    Other modules (e.g. ``nn.Linear``) keep PyTorch's default initialisation."""
+    if isinstance(module, (nn.Conv2d, nn.ConvTranspose2d)):
+        nn.init.normal_(module.weight, 0.0, 0.02)
+        if module.bias is not None:
+            nn.init.zeros_(module.bias)
+    elif isinstance(module, nn.BatchNorm2d):
+        nn.init.normal_(module.weight, 1.0, 0.02)
+        nn.init.zeros_(module.bias)
+
+
+def unet_depth(size: int) -> int:
+    """Number of stride-2 levels taking ``size`` down to 1x1, i.e. ``log2(size)``."""
+    return check_size(size).bit_length() - 1
+
+
+def encoder_width(level: int, base_width: int) -> int:
+    """Channel width at encoder level ``level`` (0-based): ``base_width * min(2**level, 8)``."""
+    return base_width * min(2**level, 8)
+
+
+def check_image_batch(x: torch.Tensor, channels: int, size: int | None, network: str) -> None:
+    """Raise ValueError unless ``x`` is ``N x channels x size x size`` (any square size if ``size`` is None)."""
+    shape = tuple(x.shape)
+    ok = x.dim() == 4 and shape[1] == channels
+    if size is not None:
+        ok = ok and shape[2] == shape[3] == size
+    if not ok:
+        expected = f"N x {channels} x {size} x {size}" if size is not None else f"N x {channels} x H x W"
+        raise ValueError(f"{network}: expected {expected} input, got shape {shape}")
+
+
+class UNetGenerator(nn.Module):
+    """U-Net mapping an ``N x in_channels x size x size`` image to ``N x out_channels x size x size`` in [-1, 1].
+
+    The encoder has ``depth = log2(size)`` stride-2 levels (bottleneck 1x1); the decoder mirrors it and
+    concatenates each upsampled map with the encoder output of equal resolution. Dropout follows the
+    ReLU of the ``min(3, depth - 2)`` decoder levels nearest the bottleneck (omitted if ``dropout == 0``).
+    """
+
+    def __init__(
+        self,
+        size: int,
+        ngf: int = 64,
+        kernel: int = 4,
+        in_channels: int = 3,
+        out_channels: int = 3,
+        dropout: float = 0.5,
+    ) -> None:
+        super().__init__()
+        check_kernel(kernel)
+        if not 0.0 <= dropout < 1.0:
+            raise ValueError(f"dropout must be in [0, 1), got {dropout!r}")
+        self.size = check_size(size)
+        self.depth = unet_depth(size)
+        self.in_channels = in_channels
+        self.out_channels = out_channels
+        depth = self.depth
+        widths = [encoder_width(level, ngf) for level in range(depth)]
+
+        encoder: list[nn.Module] = []
+        for level in range(depth):
+            source = in_channels if level == 0 else widths[level - 1]
+            if level == 0:
+                block = nn.Sequential(downsampling_conv(source, widths[0], kernel, bias=True), nn.LeakyReLU(0.2))
+            elif level == depth - 1:
+                block = nn.Sequential(downsampling_conv(source, widths[level], kernel, bias=True), nn.ReLU())
+            else:
+                block = nn.Sequential(
+                    downsampling_conv(source, widths[level], kernel, bias=False),
+                    nn.BatchNorm2d(widths[level]),
+                    nn.LeakyReLU(0.2),
+                )
+            encoder.append(block)
+        self.encoder = nn.ModuleList(encoder)
+
+        # Decoder level j upsamples 2**j -> 2**(j+1); its output joins encoder level depth-2-j.
+        self.dropout_levels = min(3, depth - 2) if dropout > 0 else 0
+        decoder: list[nn.Module] = []
+        for level in range(depth):
+            source = widths[depth - 1] if level == 0 else 2 * widths[depth - 1 - level]
+            if level == depth - 1:
+                block = nn.Sequential(upsampling_conv(source, out_channels, kernel, bias=True), nn.Tanh())
+            else:
+                target = widths[depth - 2 - level]
+                layers: list[nn.Module] = [
+                    upsampling_conv(source, target, kernel, bias=False),
+                    nn.BatchNorm2d(target),
+                    nn.ReLU(),
+                ]
+                if level < self.dropout_levels:
+                    layers.append(nn.Dropout(dropout))
+                block = nn.Sequential(*layers)
+            decoder.append(block)
+        self.decoder = nn.ModuleList(decoder)
+        self.apply(init_weights)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        check_image_batch(x, self.in_channels, self.size, type(self).__name__)
+        skips = []
+        for block in self.encoder:
+            x = block(x)
+            skips.append(x)
+        x = self.decoder[0](skips[-1])
+        for level in range(1, self.depth):
+            x = self.decoder[level](torch.cat([x, skips[self.depth - 1 - level]], dim=1))
+        return x
+
+
+class GlobalDiscriminator(nn.Module):
+    """Image-level discriminator: four stride-2 convs (widths ndf, 2ndf, 4ndf, 8ndf), flatten, one linear
+    layer. Input ``N x in_channels x size x size``; output ``N x 1`` raw logits."""
+
+    def __init__(self, size: int, ndf: int = 64, kernel: int = 5, in_channels: int = 6) -> None:
+        super().__init__()
+        check_kernel(kernel)
+        self.size = check_size(size)
+        self.in_channels = in_channels
+        widths = [ndf, 2 * ndf, 4 * ndf, 8 * ndf]
+        layers: list[nn.Module] = [downsampling_conv(in_channels, widths[0], kernel, bias=True), nn.LeakyReLU(0.2)]
+        for source, target in zip(widths[:-1], widths[1:]):
+            layers += [downsampling_conv(source, target, kernel, bias=False), nn.BatchNorm2d(target), nn.LeakyReLU(0.2)]
+        self.features = nn.Sequential(*layers)
+        final_side = size // 16
+        self.classifier = nn.Linear(widths[-1] * final_side * final_side, 1)
+        self.apply(init_weights)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        check_image_batch(x, self.in_channels, self.size, type(self).__name__)
+        return self.classifier(torch.flatten(self.features(x), 1))
+
+
+def stride1_padding(kernel: int) -> int:
+    """Padding of the PatchGAN stride-1 convs: 1 for k=4 (side shrinks by 1, as in pix2pix), 2 for k=5 (kept)."""
+    check_kernel(kernel)
+    return 1 if kernel == 4 else 2
+
+
+class PatchDiscriminator(nn.Module):
+    """PatchGAN discriminator: ``layers`` stride-2 convs, then two stride-1 convs, giving an
+    ``N x 1 x H' x W'`` map of raw logits (64 px, layers=3, kernel=4 -> 6 x 6). Any input side large
+    enough for the depth is accepted (see :meth:`output_side`)."""
+
+    def __init__(self, ndf: int = 64, layers: int = 3, kernel: int = 4, in_channels: int = 6) -> None:
+        super().__init__()
+        check_kernel(kernel)
+        if isinstance(layers, bool) or not isinstance(layers, int) or layers < 1:
+            raise ValueError(f"layers must be an integer >= 1, got {layers!r}")
+        self.layers = layers
+        self.kernel = kernel
+        self.in_channels = in_channels
+        padding = stride1_padding(kernel)
+        blocks: list[nn.Module] = [downsampling_conv(in_channels, ndf, kernel, bias=True), nn.LeakyReLU(0.2)]
+        width = ndf
+        for n in range(1, layers):
+            target = encoder_width(n, ndf)
+            blocks += [downsampling_conv(width, target, kernel, bias=False), nn.BatchNorm2d(target), nn.LeakyReLU(0.2)]
+            width = target
+        target = encoder_width(layers, ndf)
+        blocks += [
+            nn.Conv2d(width, target, kernel, stride=1, padding=padding, bias=False),
+            nn.BatchNorm2d(target),
+            nn.LeakyReLU(0.2),
+            nn.Conv2d(target, 1, kernel, stride=1, padding=padding, bias=True),
+        ]
+        self.model = nn.Sequential(*blocks)
+        self.apply(init_weights)
+
+    def output_side(self, side: int) -> int:
+        """Side of the logit map for an input side ``side`` (<= 0 means the input is too small);
+        every intermediate map must be at least 1 pixel, otherwise 0 is returned."""
+        down_padding, _ = resampling_padding(self.kernel)
+        for _ in range(self.layers):
+            side = (side + 2 * down_padding - self.kernel) // 2 + 1
+            if side < 1:
+                return 0
+        same_padding = stride1_padding(self.kernel)
+        for _ in range(2):
+            side = side + 2 * same_padding - self.kernel + 1
+            if side < 1:
+                return 0
+        return side
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        check_image_batch(x, self.in_channels, None, type(self).__name__)
+        height, width = x.shape[-2:]
+        if self.output_side(height) < 1 or self.output_side(width) < 1:
+            raise ValueError(
+                f"PatchDiscriminator: input of size {height} x {width} is too small for layers={self.layers} "
+                f"with kernel {self.kernel}"
+            )
+        return self.model(x)
+
+
+def build_discriminator(kind: str, size: int, ndf: int, kernel: int, patch_layers: int) -> nn.Module:
+    """Discriminator of ``kind`` ("global" or "patch") for ``size`` px images with 6 input channels.
+    For "patch", ``size`` is checked to give a logit map of at least 1 x 1."""
+    if kind == "global":
+        return GlobalDiscriminator(size, ndf=ndf, kernel=kernel)
+    if kind == "patch":
+        check_size(size)
+        net = PatchDiscriminator(ndf=ndf, layers=patch_layers, kernel=kernel)
+        if net.output_side(size) < 1:
+            raise ValueError(
+                f"patch discriminator: size {size} is too small for patch_layers={patch_layers} with kernel {kernel}"
+            )
+        return net
+    raise ValueError(f"unknown discriminator kind {kind!r}; allowed kinds: {', '.join(DISCRIMINATOR_KINDS)}")
+
+
+def count_parameters(module: nn.Module) -> int:
+    """Number of trainable (``requires_grad``) parameters of ``module``."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad)
+
+
+def conditional_pair(condition: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+    """What the discriminators see: ``condition`` and ``image`` concatenated along channels."""
+    return torch.cat([condition, image], dim=1)

@@ -1,0 +1,345 @@
+"""Train stage: one conditional GAN per direction (V2T, T2V) and scope entry.
+
+``train_translator`` is the whole training loop in one function: it draws batches from the
+pair table (aligned pairs as they are; unaligned ones get a fresh input from the same class at
+every draw, as the authors did), applies the paper's random positioning, alternates a
+discriminator and a generator step, logs losses, writes checkpoints atomically and resumes
+from them. ``run_train`` is the stage around it: it reads the pair tables, writes the final
+generator, ``train.json`` and the dvclive loss log into one output folder atomically.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+import torch.nn.functional as F
+from PIL import Image
+from tqdm import tqdm
+
+from .config import model_settings
+from .gan import adversarial_loss, make_optimizer, random_positioning, to_model_range
+from .imageio import atomic_output_dir
+from .models import UNetGenerator, build_discriminator, conditional_pair, count_parameters
+from .pairing import DIRECTIONS
+
+LOSS_NAMES = ("loss_d", "loss_g_gan", "loss_g_l1")
+CHECKPOINT_NAME = "last.pt"
+
+
+class TrainingDiverged(RuntimeError):
+    """A loss or weight became NaN or infinite; nothing non-finite was saved."""
+
+
+@dataclass
+class PairData:
+    """Training pairs as uint8 tensors N x 3 x S x S, with what is needed to redraw unaligned inputs.
+
+    ``input_pool[c]`` holds indices into ``pool_images`` of every training input tile of class
+    ``c``; an unaligned pair draws its input from there at every step.
+    """
+
+    inputs: torch.Tensor
+    targets: torch.Tensor
+    classes: list[str]
+    aligned: torch.Tensor
+    pool_images: torch.Tensor
+    input_pool: dict[str, torch.Tensor] = field(default_factory=dict)
+
+    def fingerprint(self) -> str:
+        """SHA-256 of the pixel data and pairing, so a checkpoint is only resumed on the same data."""
+        digest = hashlib.sha256()
+        for tensor in (self.inputs, self.targets, self.aligned, self.pool_images):
+            digest.update(tensor.numpy().tobytes())
+        digest.update(json.dumps(self.classes).encode())
+        return digest.hexdigest()
+
+
+def read_tiles(paths: list[str], size: int, root: Path = Path(".")) -> torch.Tensor:
+    """Read 8-bit RGB tiles into a uint8 N x 3 x size x size tensor, resizing (area/bilinear) when needed."""
+    if not paths:
+        return torch.zeros((0, 3, size, size), dtype=torch.uint8)
+    arrays = []
+    for path in paths:
+        with Image.open(root / path) as image:
+            if image.mode != "RGB":
+                raise ValueError(f"{path}: tile is {image.mode}, expected 8-bit RGB (rerun the roi stage)")
+            arrays.append(np.asarray(image))
+    batch = torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous()
+    if batch.shape[-1] != size or batch.shape[-2] != size:
+        batch = F.interpolate(batch.float(), size=(size, size), mode="area" if batch.shape[-1] > size else "bilinear",
+                              align_corners=None if batch.shape[-1] > size else False)
+        batch = batch.round().clamp(0, 255).to(torch.uint8)
+    return batch
+
+
+def load_pair_data(pairs: pd.DataFrame, splits: pd.DataFrame, direction: str, scope: str, size: int,
+                   root: Path = Path(".")) -> PairData:
+    """Training pairs of ``direction`` for ``scope`` ('all' or one class) from the pairing stage's tables."""
+    train = pairs[pairs["split"] == "train"]
+    if scope != "all":
+        if scope not in set(pairs["class"]):
+            raise ValueError(f"translation.scope: class '{scope}' has no {direction} pairs "
+                             f"(classes: {', '.join(sorted(set(pairs['class'])))})")
+        train = train[train["class"] == scope]
+    if train.empty:
+        raise ValueError(f"{direction}/{scope}: no training pairs")
+    source_mod = DIRECTIONS[direction][0]
+    pool = splits[(splits["split"] == "train") & (splits["modality"] == source_mod)
+                  & splits["class"].isin(set(train["class"]))].sort_values("path")
+    pool_classes = pool["class"].to_numpy()
+    return PairData(
+        inputs=read_tiles(list(train["input_path"]), size, root),
+        targets=read_tiles(list(train["target_path"]), size, root),
+        classes=list(train["class"]),
+        aligned=torch.tensor(train["aligned"].to_numpy(dtype=bool)),
+        pool_images=read_tiles(list(pool["path"]), size, root),
+        input_pool={c: torch.from_numpy(np.flatnonzero(pool_classes == c)) for c in sorted(set(train["class"]))},
+    )
+
+
+def draw_batch(data: PairData, batch_size: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """A batch of (input, target) uint8 images; unaligned targets get a fresh random input of their class."""
+    index = torch.randint(0, len(data.targets), (batch_size,), generator=generator)
+    inputs = data.inputs[index].clone()
+    for row, i in enumerate(index.tolist()):
+        if not data.aligned[i]:
+            pool = data.input_pool[data.classes[i]]
+            if len(pool):
+                inputs[row] = data.pool_images[pool[torch.randint(0, len(pool), (1,), generator=generator)]][0]
+    return inputs, data.targets[index]
+
+
+def resolve_device(name: str) -> torch.device:
+    """auto -> CUDA when available else CPU; cuda without a GPU is an error, not a silent fallback."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError("translation.device is 'cuda' but torch sees no CUDA device (use auto or cpu)")
+    return torch.device(name)
+
+
+def _all_finite(*modules: torch.nn.Module) -> bool:
+    return all(bool(torch.isfinite(t).all()) for m in modules for t in m.state_dict().values() if t.is_floating_point())
+
+
+def _save_atomic(obj, path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _config_fingerprint(settings: dict, run: dict, direction: str, scope: str, data_hash: str) -> str:
+    """What a checkpoint must match to be resumed: everything except the iteration count."""
+    keyed = {"settings": {k: v for k, v in settings.items() if k != "iterations"},
+             "seed": run["seed"], "precision": run["precision"], "direction": direction, "scope": scope, "data": data_hash}
+    return hashlib.sha256(json.dumps(keyed, sort_keys=True).encode()).hexdigest()
+
+
+@dataclass
+class TrainResult:
+    generator: UNetGenerator
+    history: list[dict]
+    steps: int
+    seconds: float
+    resumed_from: int
+    device: str
+
+
+def train_translator(data: PairData, settings: dict, run: dict, direction: str, scope: str,
+                     checkpoint_dir: Path | None = None, on_log=None, progress: bool = True) -> TrainResult:
+    """Train one conditional GAN on ``data`` for ``settings['iterations']`` steps.
+
+    ``settings`` is a presets block (size, ngf, ndf, kernel, discriminator, patch_layers,
+    gan_loss, l1_weight, optimizer, lr, betas, batch_size, iterations, noise); ``run`` holds
+    device, precision, threads, checkpoint_every, resume, log_every and seed. Per step:
+    D minimises ½[L(D(x, y), real) + L(D(x, G(x)), fake)]; G minimises
+    L(D(x, G(x)), real) + l1_weight·|G(x) − y|₁ (pix2pix, Isola et al. 2017, eq. 4).
+    Losses are averaged over each ``log_every`` window and passed to ``on_log(row)``.
+    A non-finite loss raises TrainingDiverged naming the step and the last good checkpoint.
+    """
+    device = resolve_device(run["device"])
+    if device.type == "cpu":
+        torch.set_num_threads(run["threads"])
+    torch.manual_seed(run["seed"])
+    sampler = torch.Generator().manual_seed(run["seed"])
+    size, iterations = settings["size"], settings["iterations"]
+    generator = UNetGenerator(size, settings["ngf"], settings["kernel"]).to(device)
+    discriminator = build_discriminator(settings["discriminator"], size, settings["ndf"], settings["kernel"],
+                                        settings["patch_layers"]).to(device)
+    opt_g = make_optimizer(generator.parameters(), settings["optimizer"], settings["lr"], settings["betas"])
+    opt_d = make_optimizer(discriminator.parameters(), settings["optimizer"], settings["lr"], settings["betas"])
+    autocast = (torch.autocast(device_type=device.type, dtype=torch.bfloat16) if run["precision"] == "bf16"
+                else contextlib.nullcontext())
+
+    fingerprint = _config_fingerprint(settings, run, direction, scope, data.fingerprint())
+    checkpoint_path = checkpoint_dir / CHECKPOINT_NAME if checkpoint_dir else None
+    step, history, seconds_before, resumed_from = 0, [], 0.0, 0
+    if checkpoint_path and run["resume"] and checkpoint_path.is_file():
+        state = torch.load(checkpoint_path, map_location=device, weights_only=False)
+        if state["fingerprint"] != fingerprint:
+            print(f"train {direction}/{scope}: checkpoint {checkpoint_path} is for another configuration; starting afresh")
+        elif state["step"] > iterations:
+            print(f"train {direction}/{scope}: checkpoint is at step {state['step']} > iterations {iterations}; starting afresh")
+        else:
+            generator.load_state_dict(state["generator"])
+            discriminator.load_state_dict(state["discriminator"])
+            opt_g.load_state_dict(state["opt_g"])
+            opt_d.load_state_dict(state["opt_d"])
+            sampler.set_state(state["sampler_rng"])
+            torch.set_rng_state(state["torch_rng"])
+            if device.type == "cuda" and state.get("cuda_rng") is not None:
+                torch.cuda.set_rng_state(state["cuda_rng"])
+            step, history, seconds_before = state["step"], state["history"], state["seconds"]
+            resumed_from = step
+            print(f"train {direction}/{scope}: resuming from step {step} ({checkpoint_path})")
+    if on_log:
+        for row in history:
+            on_log(row)
+
+    def save_checkpoint(at_step: int, elapsed: float) -> None:
+        if not checkpoint_path:
+            return
+        if not _all_finite(generator, discriminator):
+            raise TrainingDiverged(f"non-finite weights at step {at_step}; checkpoint not written")
+        checkpoint_dir.mkdir(parents=True, exist_ok=True)
+        _save_atomic({
+            "fingerprint": fingerprint, "step": at_step, "history": history, "seconds": elapsed,
+            "generator": generator.state_dict(), "discriminator": discriminator.state_dict(),
+            "opt_g": opt_g.state_dict(), "opt_d": opt_d.state_dict(),
+            "sampler_rng": sampler.get_state(), "torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state() if device.type == "cuda" else None,
+        }, checkpoint_path)
+
+    def last_good() -> str:
+        if checkpoint_path and checkpoint_path.is_file():
+            saved = torch.load(checkpoint_path, map_location="cpu", weights_only=False)["step"]
+            return f"last good checkpoint: {checkpoint_path} (step {saved})"
+        return "no checkpoint was written"
+
+    generator.train()
+    discriminator.train()
+    window: list[torch.Tensor] = []
+    started = time.perf_counter()
+    bar = tqdm(total=iterations, initial=step, desc=f"train {direction}/{scope}", unit="it", disable=not progress,
+               mininterval=1.0, dynamic_ncols=True)
+    while step < iterations:
+        inputs, targets = draw_batch(data, settings["batch_size"], sampler)
+        x, y = to_model_range(inputs).to(device), to_model_range(targets).to(device)
+        if settings["noise"]:
+            x, y = random_positioning(x, y, sampler)
+        with autocast:
+            fake = generator(x)
+            d_real = discriminator(conditional_pair(x, y))
+            d_fake = discriminator(conditional_pair(x, fake.detach()))
+        loss_d = 0.5 * (adversarial_loss(d_real, True, settings["gan_loss"])
+                        + adversarial_loss(d_fake, False, settings["gan_loss"]))
+        opt_d.zero_grad(set_to_none=True)
+        loss_d.backward()
+        opt_d.step()
+        with autocast:
+            d_fake = discriminator(conditional_pair(x, fake))
+        loss_g_gan = adversarial_loss(d_fake, True, settings["gan_loss"])
+        loss_g_l1 = F.l1_loss(fake.float(), y)
+        loss_g = loss_g_gan + settings["l1_weight"] * loss_g_l1 if settings["l1_weight"] else loss_g_gan
+        opt_g.zero_grad(set_to_none=True)
+        loss_g.backward()
+        opt_g.step()
+        step += 1
+        window.append(torch.stack([loss_d.detach(), loss_g_gan.detach(), loss_g_l1.detach()]))
+
+        if step % run["log_every"] == 0 or step == iterations or step % run["checkpoint_every"] == 0:
+            losses = torch.stack(window).float().cpu()  # the only host sync: once per logging window
+            bad = (~torch.isfinite(losses).all(dim=1)).nonzero()
+            if len(bad):
+                first = step - len(window) + int(bad[0]) + 1
+                bar.close()
+                raise TrainingDiverged(f"{direction}/{scope}: non-finite loss at step {first} "
+                                       f"({', '.join(f'{n}={v:.4g}' for n, v in zip(LOSS_NAMES, losses[int(bad[0])].tolist()))}); "
+                                       f"nothing after it was saved; {last_good()}")
+            elapsed = seconds_before + time.perf_counter() - started
+            row = {"step": step, **dict(zip(LOSS_NAMES, losses.mean(dim=0).tolist())),
+                   "images_per_s": (step - resumed_from) * settings["batch_size"] / max(elapsed - seconds_before, 1e-9)}
+            history.append(row)
+            window = []
+            if on_log:
+                on_log(row)
+            bar.set_postfix({"D": f"{row['loss_d']:.3f}", "G": f"{row['loss_g_gan']:.3f}", "L1": f"{row['loss_g_l1']:.3f}",
+                             "img/s": f"{row['images_per_s']:.0f}"}, refresh=False)
+            if step % run["checkpoint_every"] == 0 or step == iterations:
+                save_checkpoint(step, elapsed)
+        bar.update(1)
+    bar.close()
+    if not _all_finite(generator):
+        raise TrainingDiverged(f"{direction}/{scope}: non-finite generator weights at step {step}; {last_good()}")
+    seconds = seconds_before + time.perf_counter() - started
+    return TrainResult(generator.cpu(), history, step, seconds, resumed_from, str(device))
+
+
+def save_generator(path: Path, generator: UNetGenerator, settings: dict, direction: str, scope: str) -> None:
+    """The file `vtgen generate` and `vtgen translate` load: weights plus what is needed to rebuild the network."""
+    source_mod, target_mod = DIRECTIONS[direction]
+    _save_atomic({"state_dict": generator.state_dict(), "settings": settings, "direction": direction, "scope": scope,
+                  "input_modality": source_mod, "output_modality": target_mod}, path)
+
+
+def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, out_dir: str | Path,
+              checkpoint_root: str | Path = "checkpoints", progress: bool = True) -> dict:
+    """Stage entry: train ``direction`` for one ``scope`` entry and write ``out_dir`` atomically.
+
+    ``out_dir`` receives generator.pt, train.json and dvclive/ (per-step losses). Checkpoints
+    live outside it, in ``checkpoint_root/<direction>/<scope>/``, because Snakemake and DVC
+    delete a stage's outputs before rerunning it and a resume must survive that.
+    """
+    from dvclive import Live
+
+    if direction not in DIRECTIONS:
+        raise ValueError(f"unknown direction '{direction}' (allowed: {', '.join(DIRECTIONS)})")
+    if scope not in params["translation"]["scope"]:
+        raise ValueError(f"scope '{scope}' is not listed in translation.scope {params['translation']['scope']}")
+    settings, run = model_settings(params), params["translation"]
+    pairs_dir = Path(pairs_dir)
+    pairs = pd.read_parquet(pairs_dir / f"{direction}.parquet")
+    splits = pd.read_parquet(pairs_dir / "splits.parquet")
+    data = load_pair_data(pairs, splits, direction, scope, settings["size"])
+    tile_side = int(data.targets.shape[-1])
+    print(f"train {direction}/{scope}: {len(data.targets)} training pairs ({int(data.aligned.sum())} aligned), "
+          f"preset '{run['preset']}' at {settings['size']} px, {settings['iterations']} iterations of batch "
+          f"{settings['batch_size']}, {run['precision']}")
+    with atomic_output_dir(out_dir) as tmp:
+        live = Live(dir=str(tmp / "dvclive"), save_dvc_exp=False, dvcyaml=None, report=None)
+
+        def log(row: dict) -> None:
+            live.step = row["step"]
+            for name in (*LOSS_NAMES, "images_per_s"):
+                live.log_metric(f"train/{name}", row[name])
+
+        result = train_translator(data, settings, run, direction, scope,
+                                  Path(checkpoint_root) / direction / scope, on_log=log, progress=progress)
+        live.end()
+        save_generator(tmp / "generator.pt", result.generator, settings, direction, scope)
+        final = result.history[-1] if result.history else {}
+        summary = {
+            "direction": direction, "scope": scope, "preset": run["preset"], "settings": settings,
+            "precision": run["precision"], "device": result.device, "threads": run["threads"], "seed": run["seed"],
+            "training_pairs": len(data.targets), "aligned_pairs": int(data.aligned.sum()), "tile_size": tile_side,
+            "generator_parameters": count_parameters(result.generator), "steps": result.steps,
+            "resumed_from_step": result.resumed_from, "wall_seconds": round(result.seconds, 2),
+            "seconds_per_iteration": round(result.seconds / max(result.steps, 1), 5),
+            "final_losses": {k: final.get(k) for k in LOSS_NAMES},
+        }
+        (tmp / "train.json").write_text(json.dumps(summary, indent=2) + "\n")
+    print(f"train {direction}/{scope}: {result.steps} steps in {result.seconds:.1f} s "
+          f"({summary['seconds_per_iteration']:.3f} s/it) -> {out_dir}")
+    if not all(math.isfinite(v) for v in summary["final_losses"].values() if v is not None):
+        raise TrainingDiverged(f"{direction}/{scope}: final losses are not finite")
+    return summary

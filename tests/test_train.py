@@ -1,0 +1,191 @@
+"""Training loop: learning, both discriminators, resume, divergence, determinism, data handling."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+import vtgen.train as train_module
+from conftest import TINY_MODEL, write_image
+from vtgen.gan import to_model_range
+from vtgen.train import (PairData, TrainingDiverged, draw_batch, load_pair_data, read_tiles, run_train,
+                         train_translator)
+
+SETTINGS = dict(TINY_MODEL, gan_loss="bce", l1_weight=100.0, optimizer="adam", lr=0.0002, betas=[0.5, 0.999],
+                noise=True)
+RUN = dict(device="cpu", precision="fp32", threads=2, checkpoint_every=4, resume=True, log_every=2, seed=0)
+
+
+def texture_pairs(n: int = 6, size: int = 32, seed: int = 0) -> PairData:
+    """Aligned pairs whose target is a fixed function of the input (colour swap and inversion)."""
+    rng = np.random.default_rng(seed)
+    base = rng.integers(0, 256, (n, 3, size // 4, size // 4), dtype=np.uint8)
+    inputs = torch.from_numpy(base).repeat_interleave(4, 2).repeat_interleave(4, 3)
+    targets = 255 - inputs[:, [2, 0, 1]]
+    classes = ["a", "b"] * (n // 2)
+    return PairData(inputs, targets, classes, torch.ones(n, dtype=torch.bool), inputs.clone(),
+                    {c: torch.tensor([i for i, k in enumerate(classes) if k == c]) for c in ("a", "b")})
+
+
+def weights(generator: torch.nn.Module) -> dict:
+    return {k: v.clone() for k, v in generator.state_dict().items()}
+
+
+def same_weights(a: dict, b: dict) -> bool:
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_generator_overfits_a_single_aligned_pair():
+    data = texture_pairs(n=1)
+    settings = dict(SETTINGS, iterations=150, batch_size=1, noise=False, lr=0.002)
+    result = train_translator(data, settings, dict(RUN, checkpoint_every=1000), "v2t", "all", progress=False)
+    first, last = result.history[0]["loss_g_l1"], result.history[-1]["loss_g_l1"]
+    assert last < 0.25 * first
+    generator = result.generator.train()  # batch statistics, as during training
+    with torch.no_grad():
+        output = generator(to_model_range(data.inputs))
+    error = (output - to_model_range(data.targets)).abs().mean().item()
+    assert error < 0.15, error  # on [-1, 1]: under 8% of the range, from about 0.5 for the untrained network
+
+
+@pytest.mark.parametrize("kind", ["global", "patch"])
+def test_both_discriminators_train(kind):
+    settings = dict(SETTINGS, discriminator=kind, kernel=5 if kind == "global" else 4, iterations=60, batch_size=4)
+    result = train_translator(texture_pairs(), settings, dict(RUN, log_every=10, checkpoint_every=1000), "v2t", "all",
+                              progress=False)
+    losses = pd.DataFrame(result.history)
+    assert np.isfinite(losses[["loss_d", "loss_g_gan", "loss_g_l1"]].to_numpy()).all()
+    # the discriminator learns to tell real from fake: its loss falls from chance, log 2 = 0.693
+    assert losses["loss_d"].iloc[-1] < 0.9 * min(losses["loss_d"].iloc[0], 0.693)
+    assert losses["loss_g_l1"].iloc[-1] < losses["loss_g_l1"].iloc[0]
+
+
+def test_training_is_deterministic_on_cpu(tmp_path):
+    runs = [train_translator(texture_pairs(), dict(SETTINGS, iterations=8), RUN, "v2t", "all", progress=False)
+            for _ in range(2)]
+    assert same_weights(weights(runs[0].generator), weights(runs[1].generator))
+    other = train_translator(texture_pairs(), dict(SETTINGS, iterations=8), dict(RUN, seed=1), "v2t", "all",
+                             progress=False)
+    assert not same_weights(weights(runs[0].generator), weights(other.generator))
+
+
+def test_resume_gives_the_same_weights_as_an_uninterrupted_run(tmp_path, capsys):
+    full = train_translator(texture_pairs(), dict(SETTINGS, iterations=12), RUN, "v2t", "all",
+                            checkpoint_dir=tmp_path / "full", progress=False)
+    train_translator(texture_pairs(), dict(SETTINGS, iterations=8), RUN, "v2t", "all",
+                     checkpoint_dir=tmp_path / "split", progress=False)
+    resumed = train_translator(texture_pairs(), dict(SETTINGS, iterations=12), RUN, "v2t", "all",
+                               checkpoint_dir=tmp_path / "split", progress=False)
+    assert "resuming from step 8" in capsys.readouterr().out
+    assert resumed.resumed_from == 8 and resumed.steps == 12
+    assert same_weights(weights(full.generator), weights(resumed.generator))
+    strip = [{k: v for k, v in row.items() if k != "images_per_s"} for row in full.history]
+    assert strip == [{k: v for k, v in row.items() if k != "images_per_s"} for row in resumed.history]
+
+
+def test_a_checkpoint_of_another_configuration_is_not_resumed(tmp_path, capsys):
+    train_translator(texture_pairs(), dict(SETTINGS, iterations=4), RUN, "v2t", "all",
+                     checkpoint_dir=tmp_path, progress=False)
+    result = train_translator(texture_pairs(), dict(SETTINGS, iterations=4, lr=0.001), RUN, "v2t", "all",
+                              checkpoint_dir=tmp_path, progress=False)
+    assert "another configuration" in capsys.readouterr().out
+    assert result.resumed_from == 0
+    changed_data = train_translator(texture_pairs(seed=5), dict(SETTINGS, iterations=4, lr=0.001), RUN, "v2t",
+                                    "all", checkpoint_dir=tmp_path, progress=False)
+    assert changed_data.resumed_from == 0
+
+
+def test_a_non_finite_loss_stops_training_and_names_the_step(tmp_path, monkeypatch):
+    real_loss = train_module.adversarial_loss
+    calls = {"n": 0}
+
+    def poisoned(logits, real, kind="bce"):
+        calls["n"] += 1  # three calls per step: D real, D fake, G
+        loss = real_loss(logits, real, kind)
+        return loss * float("nan") if calls["n"] > 3 * 5 else loss
+
+    monkeypatch.setattr(train_module, "adversarial_loss", poisoned)
+    with pytest.raises(TrainingDiverged, match=r"non-finite loss at step 6.*last good checkpoint: .*step 4\)"):
+        train_translator(texture_pairs(), dict(SETTINGS, iterations=12), RUN, "v2t", "all",
+                         checkpoint_dir=tmp_path, progress=False)
+    saved = torch.load(tmp_path / "last.pt", weights_only=False)
+    assert saved["step"] == 4
+    assert all(torch.isfinite(t).all() for t in saved["generator"].values() if t.is_floating_point())
+
+
+def test_bf16_training_gives_finite_losses():
+    result = train_translator(texture_pairs(), dict(SETTINGS, iterations=6), dict(RUN, precision="bf16"), "v2t",
+                              "all", progress=False)
+    assert np.isfinite(pd.DataFrame(result.history)[["loss_d", "loss_g_gan", "loss_g_l1"]].to_numpy()).all()
+
+
+def test_unaligned_pairs_draw_a_fresh_input_of_the_same_class():
+    data = texture_pairs(n=6)
+    data.aligned[:] = False
+    data.pool_images = torch.arange(6, dtype=torch.uint8).view(6, 1, 1, 1).expand(6, 3, 32, 32).clone()
+    generator = torch.Generator().manual_seed(0)
+    seen = {"a": set(), "b": set()}
+    for _ in range(40):
+        inputs, targets = draw_batch(data, 2, generator)
+        for image, target in zip(inputs, targets):
+            row = next(i for i in range(6) if torch.equal(data.targets[i], target))
+            seen[data.classes[row]].add(int(image[0, 0, 0]))
+    assert seen == {"a": {0, 2, 4}, "b": {1, 3, 5}}  # every input of the class, never one of another class
+
+
+def test_read_tiles_resizes_and_refuses_non_rgb(tmp_path):
+    rng = np.random.default_rng(0)
+    write_image(tmp_path / "a.png", rng.integers(0, 256, (64, 64, 3), dtype=np.uint8))
+    assert read_tiles(["a.png"], 32, tmp_path).shape == (1, 3, 32, 32)
+    assert read_tiles(["a.png"], 64, tmp_path).dtype == torch.uint8
+    write_image(tmp_path / "g.png", rng.integers(0, 256, (32, 32), dtype=np.uint8))
+    with pytest.raises(ValueError, match="g.png: tile is L"):
+        read_tiles(["g.png"], 32, tmp_path)
+
+
+def pair_tables(root, classes=("a", "b"), per_class=4, aligned=True):
+    """A pairs folder as the pairs stage writes it, with random tiles on disk under ``root``."""
+    rng = np.random.default_rng(1)
+    rows, tiles = [], []
+    for cls in classes:
+        for i in range(per_class):
+            split = "test" if i == 0 else "train"
+            for modality in ("visual", "tactile"):
+                path = f"tiles/{modality}/{cls}/{i}.png"
+                write_image(root / path, rng.integers(0, 256, (32, 32, 3), dtype=np.uint8))
+                tiles.append({"path": path, "class": cls, "modality": modality, "source": f"{cls}/{i}", "split": split})
+            rows.append({"direction": "v2t", "split": split, "class": cls, "input_path": f"tiles/visual/{cls}/{i}.png",
+                         "target_path": f"tiles/tactile/{cls}/{i}.png", "input_source": f"{cls}/{i}",
+                         "target_source": f"{cls}/{i}", "aligned": aligned})
+    return pd.DataFrame(rows), pd.DataFrame(tiles)
+
+
+def test_load_pair_data_keeps_the_training_split_of_the_scope(tmp_path):
+    pairs, splits = pair_tables(tmp_path)
+    data = load_pair_data(pairs, splits, "v2t", "all", 32, tmp_path)
+    assert len(data.targets) == 6 and set(data.classes) == {"a", "b"}
+    one = load_pair_data(pairs, splits, "v2t", "b", 32, tmp_path)
+    assert one.classes == ["b"] * 3 and len(one.pool_images) == 3
+    with pytest.raises(ValueError, match="class 'zzz' has no v2t pairs"):
+        load_pair_data(pairs, splits, "v2t", "zzz", 32, tmp_path)
+
+
+def test_run_train_writes_generator_summary_and_loss_log(tmp_path, monkeypatch):
+    from conftest import tiny_params
+
+    monkeypatch.chdir(tmp_path)
+    pairs, splits = pair_tables(tmp_path)
+    (tmp_path / "pairs").mkdir()
+    pairs.to_parquet(tmp_path / "pairs/v2t.parquet")
+    splits.to_parquet(tmp_path / "pairs/splits.parquet")
+    summary = run_train(tiny_params(), "v2t", "all", "pairs", "models/v2t/all", "ckpt", progress=False)
+    out = tmp_path / "models/v2t/all"
+    assert {p.name for p in out.iterdir()} == {"generator.pt", "train.json", "dvclive"}
+    assert summary["steps"] == 10 and summary["training_pairs"] == 6
+    logged = pd.read_csv(out / "dvclive/plots/metrics/train/loss_g_l1.tsv", sep="\t")
+    assert list(logged["step"]) == [2, 4, 5, 6, 8, 10]  # every log_every (2) steps and at each checkpoint (5)
+    assert (tmp_path / "ckpt/v2t/all/last.pt").is_file()
+    with pytest.raises(ValueError, match="not listed in translation.scope"):
+        run_train(tiny_params(), "v2t", "a", "pairs", "models/v2t/a", "ckpt", progress=False)
