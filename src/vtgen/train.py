@@ -301,6 +301,7 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
     delete a stage's outputs before rerunning it and a resume must survive that.
     """
     from dvclive import Live
+    from scmrepo.exceptions import SCMError
 
     if direction not in DIRECTIONS:
         raise ValueError(f"unknown direction '{direction}' (allowed: {', '.join(DIRECTIONS)})")
@@ -316,7 +317,11 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
           f"preset '{run['preset']}' at {settings['size']} px, {settings['iterations']} iterations of batch "
           f"{settings['batch_size']}, {run['precision']}")
     with atomic_output_dir(out_dir) as tmp:
-        live = Live(dir=str(tmp / "dvclive"), save_dvc_exp=False, dvcyaml=None, report=None)
+        try:
+            live = Live(dir=str(tmp / "dvclive"), save_dvc_exp=False, dvcyaml=None, report=None)
+        except SCMError as exc:  # dvclive reads the Git revision of the DVC project it runs in
+            raise RuntimeError(f"dvclive cannot log in this Git repository ({exc}); "
+                               f"make a first commit (`git commit`) and run again") from exc
 
         def log(row: dict) -> None:
             live.step = row["step"]
