@@ -145,3 +145,33 @@ def test_snakemake_refuses_invalid_params(tmp_path):
     result = subprocess.run(["snakemake", "--cores", "1", "-n"], cwd=project, env=ENV, capture_output=True, text=True)
     assert result.returncode != 0
     assert "roi: unknown key 'unknown_option'" in result.stdout + result.stderr
+
+
+def test_per_class_scope_makes_one_training_job_per_class_and_direction(tmp_path):
+    params = tiny_params()
+    params["translation"]["scope"] = ["all", "denim", "felt"]
+    project = make_project(tmp_path / "scoped", params)
+    dry = run(["snakemake", "--cores", "2", "-n", "-p"], project).stdout
+    trained = set(re.findall(r"output: (models/\S+)", dry))
+    assert trained == {f"models/{d}/{s}" for d in ("v2t", "t2v") for s in ("all", "denim", "felt")}
+    assert "vtgen train --params params.yaml --direction t2v --scope felt" in dry
+    from dvc.repo import Repo
+
+    run(["git", "init", "-q"], project)
+    run(["dvc", "init", "-q"], project)
+    names = {stage.name for stage in Repo(str(project)).index.stages}
+    assert {n for n in names if n.startswith("train@")} == {
+        f"train@{d}-{s}" for d in ("v2t", "t2v") for s in ("all", "denim", "felt")}
+
+
+def test_real_vitac_sample_trains_and_generates_from_unaligned_pairs(tmp_path, vitac_root):
+    params = tiny_params(dataset={"source": "vitac", "path": str(vitac_root)},
+                         roi={"tactile_box": "auto", "remove_markers": True, "crop_fraction": 1.0})
+    project = make_project(tmp_path / "vitac", params)
+    run(["snakemake", "--cores", "2"], project)
+    for direction in ("v2t", "t2v"):
+        summary = json.loads((project / f"models/{direction}/all/train.json").read_text())
+        assert summary["training_pairs"] > 0 and summary["aligned_pairs"] == 0  # ViTac views are not aligned
+        generated = pd.read_parquet(project / f"data/generated/{direction}/generated.parquet")
+        assert (generated["ground_truth_path"] == "").all()  # a random partner is no ground truth
+        assert (generated["split"] == "test").sum() == 10  # every test tile of the input modality (10 per folder)
