@@ -119,6 +119,17 @@ def test_snakemake_and_dvc_run_the_same_commands_and_outputs(snakemake_project, 
         assert stage.cmd == job["cmd"], stage.name
         assert deps == inputs, stage.name
 
+    # training depends on the selected preset only: editing another preset changes nothing
+    edited = tiny_params()
+    edited["presets"]["paper"]["ngf"] = 8
+    (project / "params.yaml").write_text(yaml.safe_dump(edited, sort_keys=False))
+    assert "up to date" in run(["dvc", "status"], project).stdout.lower()
+    edited["presets"]["fast"]["iterations"] = 12
+    (project / "params.yaml").write_text(yaml.safe_dump(edited, sort_keys=False))
+    changed = run(["dvc", "status", "--json"], project).stdout
+    assert set(json.loads(changed)) == {"train@v2t-all", "train@t2v-all"}
+    (project / "params.yaml").write_text(yaml.safe_dump(tiny_params(), sort_keys=False))
+
     # DVC tracks exactly the folders Snakemake writes, with the same files and contents
     lock = yaml.safe_load((project / "dvc.lock").read_text())["stages"]
     assert {out["path"] for s in lock.values() for out in s["outs"]} == OUTPUTS
