@@ -40,9 +40,12 @@ def same_weights(a: dict, b: dict) -> bool:
 def test_generator_overfits_a_single_aligned_pair():
     data = texture_pairs(n=1)
     settings = dict(SETTINGS, iterations=150, batch_size=1, noise=False, lr=0.002)
-    result = train_translator(data, settings, dict(RUN, checkpoint_every=1000), "v2t", "all", progress=False)
+    result = train_translator(data, settings, dict(RUN, checkpoint_every=75), "v2t", "all", progress=False,
+                              validation=data)
     first, last = result.history[0]["loss_g_l1"], result.history[-1]["loss_g_l1"]
     assert last < 0.25 * first
+    validated = [row["val_l1"] for row in result.history if "val_l1" in row]
+    assert len(validated) == 2 and validated[1] < validated[0]  # eval-mode error on the pair falls too
     generator = result.generator.train()  # batch statistics, as during training
     with torch.no_grad():
         output = generator(to_model_range(data.inputs))
@@ -72,15 +75,17 @@ def test_training_is_deterministic_on_cpu(tmp_path):
 
 
 def test_resume_gives_the_same_weights_as_an_uninterrupted_run(tmp_path, capsys):
+    val = texture_pairs(seed=3)
     full = train_translator(texture_pairs(), dict(SETTINGS, iterations=12), RUN, "v2t", "all",
-                            checkpoint_dir=tmp_path / "full", progress=False)
+                            checkpoint_dir=tmp_path / "full", progress=False, validation=val)
     train_translator(texture_pairs(), dict(SETTINGS, iterations=8), RUN, "v2t", "all",
-                     checkpoint_dir=tmp_path / "split", progress=False)
+                     checkpoint_dir=tmp_path / "split", progress=False, validation=val)
     resumed = train_translator(texture_pairs(), dict(SETTINGS, iterations=12), RUN, "v2t", "all",
-                               checkpoint_dir=tmp_path / "split", progress=False)
+                               checkpoint_dir=tmp_path / "split", progress=False, validation=val)
     assert "resuming from step 8" in capsys.readouterr().out
     assert resumed.resumed_from == 8 and resumed.steps == 12
     assert same_weights(weights(full.generator), weights(resumed.generator))
+    assert [row["step"] for row in full.history if "val_l1" in row] == [4, 8, 12]  # validated at each checkpoint
     strip = [{k: v for k, v in row.items() if k != "images_per_s"} for row in full.history]
     assert strip == [{k: v for k, v in row.items() if k != "images_per_s"} for row in resumed.history]
 

@@ -83,18 +83,18 @@ def read_tiles(paths: list[str], size: int, root: Path = Path(".")) -> torch.Ten
 
 
 def load_pair_data(pairs: pd.DataFrame, splits: pd.DataFrame, direction: str, scope: str, size: int,
-                   root: Path = Path(".")) -> PairData:
-    """Training pairs of ``direction`` for ``scope`` ('all' or one class) from the pairing stage's tables."""
-    train = pairs[pairs["split"] == "train"]
+                   root: Path = Path("."), split: str = "train") -> PairData:
+    """Pairs of ``split`` for ``direction`` and ``scope`` ('all' or one class) from the pairing stage's tables."""
+    train = pairs[pairs["split"] == split]
     if scope != "all":
         if scope not in set(pairs["class"]):
             raise ValueError(f"translation.scope: class '{scope}' has no {direction} pairs "
                              f"(classes: {', '.join(sorted(set(pairs['class'])))})")
         train = train[train["class"] == scope]
     if train.empty:
-        raise ValueError(f"{direction}/{scope}: no training pairs")
+        raise ValueError(f"{direction}/{scope}: no {split} pairs")
     source_mod = DIRECTIONS[direction][0]
-    pool = splits[(splits["split"] == "train") & (splits["modality"] == source_mod)
+    pool = splits[(splits["split"] == split) & (splits["modality"] == source_mod)
                   & splits["class"].isin(set(train["class"]))].sort_values("path")
     pool_classes = pool["class"].to_numpy()
     return PairData(
@@ -155,8 +155,26 @@ class TrainResult:
     device: str
 
 
+def validation_l1(generator: UNetGenerator, validation: PairData, batch_size: int = 32) -> float:
+    """Mean |G(x) - y| on [-1, 1] over the aligned validation pairs, in eval mode (no dropout, running BN)."""
+    device = next(generator.parameters()).device
+    keep = validation.aligned.nonzero().flatten()
+    was_training = generator.training
+    generator.eval()
+    total = 0.0
+    with torch.no_grad():
+        for start in range(0, len(keep), batch_size):
+            index = keep[start:start + batch_size]
+            x = to_model_range(validation.inputs[index]).to(device)
+            y = to_model_range(validation.targets[index]).to(device)
+            total += float((generator(x).float() - y).abs().mean(dim=(1, 2, 3)).sum())
+    generator.train(was_training)
+    return total / len(keep)
+
+
 def train_translator(data: PairData, settings: dict, run: dict, direction: str, scope: str,
-                     checkpoint_dir: Path | None = None, on_log=None, progress: bool = True) -> TrainResult:
+                     checkpoint_dir: Path | None = None, on_log=None, progress: bool = True,
+                     validation: PairData | None = None) -> TrainResult:
     """Train one conditional GAN on ``data`` for ``settings['iterations']`` steps.
 
     ``settings`` is a presets block (size, ngf, ndf, kernel, discriminator, patch_layers,
@@ -164,7 +182,8 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
     device, precision, threads, checkpoint_every, resume, log_every and seed. Per step:
     D minimises ½[L(D(x, y), real) + L(D(x, G(x)), fake)]; G minimises
     L(D(x, G(x)), real) + l1_weight·|G(x) − y|₁ (pix2pix, Isola et al. 2017, eq. 4).
-    Losses are averaged over each ``log_every`` window and passed to ``on_log(row)``.
+    Losses are averaged over each ``log_every`` window and passed to ``on_log(row)``; at each
+    checkpoint the row also holds ``val_l1``, the L1 error on the aligned pairs of ``validation``.
     A non-finite loss raises TrainingDiverged naming the step and the last good checkpoint.
     """
     device = resolve_device(run["device"])
@@ -269,13 +288,16 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
             elapsed = seconds_before + time.perf_counter() - started
             row = {"step": step, **dict(zip(LOSS_NAMES, losses.mean(dim=0).tolist())),
                    "images_per_s": (step - resumed_from) * settings["batch_size"] / max(elapsed - seconds_before, 1e-9)}
+            at_checkpoint = step % run["checkpoint_every"] == 0 or step == iterations
+            if at_checkpoint and validation is not None and bool(validation.aligned.any()):
+                row["val_l1"] = validation_l1(generator, validation)
             history.append(row)
             window = []
             if on_log:
                 on_log(row)
             bar.set_postfix({"D": f"{row['loss_d']:.3f}", "G": f"{row['loss_g_gan']:.3f}", "L1": f"{row['loss_g_l1']:.3f}",
                              "img/s": f"{row['images_per_s']:.0f}"}, refresh=False)
-            if step % run["checkpoint_every"] == 0 or step == iterations:
+            if at_checkpoint:
                 save_checkpoint(step, elapsed)
         bar.update(1)
     bar.close()
@@ -312,6 +334,8 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
     pairs = pd.read_parquet(pairs_dir / f"{direction}.parquet")
     splits = pd.read_parquet(pairs_dir / "splits.parquet")
     data = load_pair_data(pairs, splits, direction, scope, settings["size"])
+    has_val = not pairs[(pairs["split"] == "val") & ((pairs["class"] == scope) | (scope == "all"))].empty
+    validation = load_pair_data(pairs, splits, direction, scope, settings["size"], split="val") if has_val else None
     tile_side = int(data.targets.shape[-1])
     print(f"train {direction}/{scope}: {len(data.targets)} training pairs ({int(data.aligned.sum())} aligned), "
           f"preset '{run['preset']}' at {settings['size']} px, {settings['iterations']} iterations of batch "
@@ -327,9 +351,12 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
             live.step = row["step"]
             for name in (*LOSS_NAMES, "images_per_s"):
                 live.log_metric(f"train/{name}", row[name])
+            if "val_l1" in row:
+                live.log_metric("val/l1", row["val_l1"])
 
         result = train_translator(data, settings, run, direction, scope,
-                                  Path(checkpoint_root) / direction / scope, on_log=log, progress=progress)
+                                  Path(checkpoint_root) / direction / scope, on_log=log, progress=progress,
+                                  validation=validation)
         live.end()
         save_generator(tmp / "generator.pt", result.generator, settings, direction, scope)
         final = result.history[-1] if result.history else {}
@@ -341,6 +368,8 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
             "resumed_from_step": result.resumed_from, "wall_seconds": round(result.seconds, 2),
             "seconds_per_iteration": round(result.seconds / max(result.steps, 1), 5),
             "final_losses": {k: final.get(k) for k in LOSS_NAMES},
+            "validation_pairs": 0 if validation is None else int(validation.aligned.sum()),
+            "final_val_l1": final.get("val_l1"),
         }
         (tmp / "train.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"train {direction}/{scope}: {result.steps} steps in {result.seconds:.1f} s "
