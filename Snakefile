@@ -24,4 +24,4 @@ include: "workflow/rules/translation.smk"
 rule all:
     default_target: True
     input:
-        expand("data/generated/{direction}", direction=DIRECTIONS),
+        expand("data/generated/{direction}", direction=list(DIRECTIONS)),

@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from .config import ParamsError, load_params
+from .pairing import DIRECTIONS
 
 
 def _render(args, params) -> None:
@@ -82,20 +83,20 @@ def build_parser() -> argparse.ArgumentParser:
     stage("pairs", _pairs, "assign splits by source and build V2T/T2V pair tables").add_argument(
         "--tiles", required=True, help="tiles.parquet from the roi stage")
     train = stage("train", _train, "train the conditional GAN of one direction and translation.scope entry")
-    train.add_argument("--direction", required=True, choices=["v2t", "t2v"])
+    train.add_argument("--direction", required=True, choices=list(DIRECTIONS))
     train.add_argument("--scope", required=True, help="'all' or a class name listed in translation.scope")
     train.add_argument("--pairs", required=True, help="folder written by the pairs stage")
     train.add_argument("--checkpoints", default="checkpoints",
                        help="root of the resumable checkpoints (default: checkpoints)")
     generate = stage("generate", _generate, "translate the test split (and a share of training inputs)")
-    generate.add_argument("--direction", required=True, choices=["v2t", "t2v"])
+    generate.add_argument("--direction", required=True, choices=list(DIRECTIONS))
     generate.add_argument("--pairs", required=True, help="folder written by the pairs stage")
     generate.add_argument("--models", required=True, help="folder holding one trained model per scope entry")
     translate = sub.add_parser("translate", help="translate your own images or folders with a trained model")
     translate.add_argument("inputs", nargs="+", help="images (PNG, JPEG, ... or .npy) or folders of them")
     translate.add_argument("--model", required=True, help="a trained model folder (models/<direction>/<scope>) or its generator.pt")
     translate.add_argument("--out", required=True, help="folder for the translated PNGs")
-    translate.add_argument("--direction", choices=["v2t", "t2v"], help="refuse a model of the other direction")
+    translate.add_argument("--direction", choices=list(DIRECTIONS), help="refuse a model of the other direction")
     translate.add_argument("--params", default=None, help="params file for translation.device (default: CPU)")
     translate.set_defaults(func=_translate)
     return parser

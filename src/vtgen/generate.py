@@ -12,7 +12,6 @@ import json
 import pickle
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pandas as pd
 import torch
@@ -20,7 +19,7 @@ from PIL import Image
 from tqdm import tqdm
 
 from .gan import to_model_range, to_uint8
-from .imageio import atomic_output_dir, write_png
+from .imageio import atomic_output_dir, labelled_sheet, write_png
 from .models import UNetGenerator
 from .pairing import DIRECTIONS
 from .train import read_tiles, resolve_device
@@ -77,23 +76,18 @@ def select_inputs(splits: pd.DataFrame, pairs: pd.DataFrame, direction: str, sco
     return selected[["split", "class", "input_path", "ground_truth_path"]].reset_index(drop=True)
 
 
-def comparison_sheet(rows: pd.DataFrame, per_class: int = 4, side: int = 96) -> np.ndarray:
-    """One row per class: input | generated | ground truth (grey when none), ``per_class`` examples."""
-    label_w, header = 120, 24
-    classes = sorted(rows["class"].unique())
-    sheet = np.full((header + side * len(classes), label_w + 3 * per_class * side, 3), 255, np.uint8)
-    text = dict(fontFace=cv2.FONT_HERSHEY_SIMPLEX, fontScale=0.45, color=(0, 0, 0), thickness=1, lineType=cv2.LINE_AA)
-    for k, title in enumerate(("input", "generated", "ground truth")):
-        cv2.putText(sheet, title, (label_w + k * per_class * side + 4, 16), **text)
-    for r, cls in enumerate(classes):
-        cv2.putText(sheet, str(cls)[:14], (4, header + r * side + side // 2), **text)
-        for c, row in enumerate(rows[rows["class"] == cls].head(per_class).itertuples()):
-            for k, path in enumerate((row.input_path, row.output_path, row.ground_truth_path)):
-                tile = np.asarray(Image.open(path).convert("RGB")) if path else np.full((side, side, 3), 200, np.uint8)
-                x = label_w + (k * per_class + c) * side
-                sheet[header + r * side:header + (r + 1) * side, x:x + side] = cv2.resize(
-                    tile, (side, side), interpolation=cv2.INTER_NEAREST)
-    return sheet
+def comparison_sheet(rows: pd.DataFrame, image_root: Path, per_class: int = 4) -> np.ndarray:
+    """One row per class: inputs | generated (``output_name`` under ``image_root``) | ground truth (grey when none)."""
+    def read(path) -> np.ndarray | None:
+        return np.asarray(Image.open(path).convert("RGB")) if path else None
+
+    sheet_rows = []
+    for cls, group in rows.groupby("class", sort=True):
+        group = group.head(per_class)
+        sheet_rows.append((cls, [[read(p) for p in group["input_path"]],
+                                 [read(image_root / n) for n in group["output_name"]],
+                                 [read(p) for p in group["ground_truth_path"]]]))
+    return labelled_sheet(sheet_rows, ["input", "generated", "ground truth"], per_class)
 
 
 def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir: str | Path, out_dir: str | Path,
@@ -115,25 +109,23 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
             if meta["direction"] != direction:
                 raise ValueError(f"{meta['path']}: model translates {meta['direction']}, not {direction}")
             rows = select_inputs(splits, pairs, direction, scope, cfg["train_share"], cfg["seed"])
-            names = [f"images/{scope}/{split}/{cls}/{Path(path).stem}.png"
-                     for split, cls, path in zip(rows["split"], rows["class"], rows["input_path"])]
+            rows["output_name"] = [f"images/{scope}/{split}/{cls}/{Path(path).stem}.png"
+                                   for split, cls, path in zip(rows["split"], rows["class"], rows["input_path"])]
             for start in tqdm(range(0, len(rows), cfg["batch_size"]), desc=f"generate {direction}/{scope}",
                               unit="batch", disable=not progress, mininterval=1.0):
-                chunk = slice(start, start + cfg["batch_size"])
-                outputs = translate(generator, read_tiles(list(rows["input_path"][chunk]), meta["size"]))
-                for name, image in zip(names[chunk], outputs):
+                chunk = rows.iloc[start:start + cfg["batch_size"]]
+                outputs = translate(generator, read_tiles(list(chunk["input_path"]), meta["size"]))
+                for name, image in zip(chunk["output_name"], outputs):
                     (tmp / name).parent.mkdir(parents=True, exist_ok=True)
                     write_png(tmp / name, image.permute(1, 2, 0).numpy())
-            rows["output_path"] = [str(out_dir / n) for n in names]
+            rows["output_path"] = [str(out_dir / n) for n in rows["output_name"]]
             rows["direction"], rows["scope"], rows["model"] = direction, scope, str(models_dir / scope / "generator.pt")
-            tables.append(rows[GENERATED_COLUMNS])
+            tables.append(rows)
             summary["scopes"][scope] = {s: int((rows["split"] == s).sum()) for s in ("train", "test")}
             summary["scopes"][scope]["with_ground_truth"] = int((rows["ground_truth_path"] != "").sum())
         table = pd.concat(tables, ignore_index=True)
-        table.to_parquet(tmp / "generated.parquet", index=False)
-        shown = table[table["split"] == "test"].assign(
-            output_path=[str(tmp / Path(p).relative_to(out_dir)) for p in table.loc[table["split"] == "test", "output_path"]])
-        write_png(tmp / "preview.png", comparison_sheet(shown))
+        table[GENERATED_COLUMNS].to_parquet(tmp / "generated.parquet", index=False)
+        write_png(tmp / "preview.png", comparison_sheet(table[table["split"] == "test"], tmp))
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     for scope, counts in summary["scopes"].items():
         print(f"generate {direction}/{scope}: {counts['test']} test and {counts['train']} training inputs translated "

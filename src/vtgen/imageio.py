@@ -16,6 +16,7 @@ from pathlib import Path
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Iterable, Iterator, TypeVar
 
+import cv2
 import numpy as np
 from PIL import Image
 
@@ -160,3 +161,23 @@ def atomic_output_dir(out_dir: str | Path) -> Iterator[Path]:
         out_dir.rename(old)
     tmp.rename(out_dir)
     shutil.rmtree(old, ignore_errors=True)
+
+
+def labelled_sheet(rows: list[tuple[str, list[list[np.ndarray | None]]]], titles: list[str], per_group: int,
+                   side: int = 96) -> np.ndarray:
+    """A contact sheet for a person to look at: one row per ``(label, groups)``, each group holding up
+    to ``per_group`` RGB images shown at ``side`` px under its title; ``None`` cells are grey."""
+    label_w, header = 120, 24
+    sheet = np.full((header + side * len(rows), label_w + len(titles) * per_group * side, 3), 255, np.uint8)
+    text = dict(fontFace=cv2.FONT_HERSHEY_SIMPLEX, fontScale=0.45, color=(0, 0, 0), thickness=1, lineType=cv2.LINE_AA)
+    for g, title in enumerate(titles):
+        cv2.putText(sheet, title, (label_w + g * per_group * side + 4, 16), **text)
+    for r, (label, groups) in enumerate(rows):
+        cv2.putText(sheet, str(label)[:14], (4, header + r * side + side // 2), **text)
+        for g, images in enumerate(groups):
+            for c, image in enumerate(images[:per_group]):
+                cell = np.full((side, side, 3), 200, np.uint8) if image is None else cv2.resize(
+                    image, (side, side), interpolation=cv2.INTER_NEAREST)
+                x = label_w + (g * per_group + c) * side
+                sheet[header + r * side:header + (r + 1) * side, x:x + side] = cell
+    return sheet

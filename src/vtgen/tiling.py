@@ -16,11 +16,10 @@ import json
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pandas as pd
 
-from .imageio import atomic_output_dir, map_images, read_rgb8, write_png
+from .imageio import atomic_output_dir, labelled_sheet, map_images, read_rgb8, write_png
 from .roi import Box, centre_box, contact_box, cut_tile, remove_markers, tile_boxes
 
 TILE_COLUMNS = [
@@ -94,21 +93,14 @@ def cut_dataset_tiles(manifest: pd.DataFrame, roi: dict, tiles_dir: Path, worker
 def tile_preview(tiles: pd.DataFrame, tiles_dir: Path, per_class: int = 4, side: int = 96) -> np.ndarray:
     """A contact sheet for a person to look at: one row per class, ``per_class`` visual tiles then
     as many tactile tiles (aligned views side by side when the data has them), class name on the left."""
-    label_w, header = 120, 24
-    classes = sorted(tiles["class"].unique())
-    sheet = np.full((header + side * len(classes), label_w + 2 * per_class * side, 3), 255, np.uint8)
-    text = dict(fontFace=cv2.FONT_HERSHEY_SIMPLEX, fontScale=0.45, color=(0, 0, 0), thickness=1, lineType=cv2.LINE_AA)
-    for m, modality in enumerate(("visual", "tactile")):
-        cv2.putText(sheet, modality, (label_w + m * per_class * side + 4, 16), **text)
-    for r, cls in enumerate(classes):
-        cv2.putText(sheet, str(cls)[:14], (4, header + r * side + side // 2), **text)
-        for m, modality in enumerate(("visual", "tactile")):
+    rows = []
+    for cls in sorted(tiles["class"].unique()):
+        groups = []
+        for modality in ("visual", "tactile"):
             chosen = tiles[(tiles["class"] == cls) & (tiles["modality"] == modality)].sort_values(["pair_key", "tile_index"])
-            for c, path in enumerate(chosen["tile_path"].head(per_class)):
-                tile = cv2.resize(read_rgb8(tiles_dir / path).rgb, (side, side), interpolation=cv2.INTER_NEAREST)
-                x = label_w + (m * per_class + c) * side
-                sheet[header + r * side:header + (r + 1) * side, x:x + side] = tile
-    return sheet
+            groups.append([read_rgb8(tiles_dir / path).rgb for path in chosen["tile_path"].head(per_class)])
+        rows.append((cls, groups))
+    return labelled_sheet(rows, ["visual", "tactile"], per_class, side)
 
 
 def run_roi(manifest_path: str | Path, roi: dict, out_dir: str | Path, workers: int = 2) -> dict:

@@ -13,7 +13,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
-import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -82,15 +81,19 @@ def read_tiles(paths: list[str], size: int, root: Path = Path(".")) -> torch.Ten
     return batch
 
 
+def pairs_in(pairs: pd.DataFrame, split: str, scope: str) -> pd.DataFrame:
+    """Rows of a pair table in ``split`` and ``scope`` ('all' or one class)."""
+    chosen = pairs[pairs["split"] == split]
+    return chosen if scope == "all" else chosen[chosen["class"] == scope]
+
+
 def load_pair_data(pairs: pd.DataFrame, splits: pd.DataFrame, direction: str, scope: str, size: int,
                    root: Path = Path("."), split: str = "train") -> PairData:
     """Pairs of ``split`` for ``direction`` and ``scope`` ('all' or one class) from the pairing stage's tables."""
-    train = pairs[pairs["split"] == split]
-    if scope != "all":
-        if scope not in set(pairs["class"]):
-            raise ValueError(f"translation.scope: class '{scope}' has no {direction} pairs "
-                             f"(classes: {', '.join(sorted(set(pairs['class'])))})")
-        train = train[train["class"] == scope]
+    if scope != "all" and scope not in set(pairs["class"]):
+        raise ValueError(f"translation.scope: class '{scope}' has no {direction} pairs "
+                         f"(classes: {', '.join(sorted(set(pairs['class'])))})")
+    train = pairs_in(pairs, split, scope)
     if train.empty:
         raise ValueError(f"{direction}/{scope}: no {split} pairs")
     source_mod = DIRECTIONS[direction][0]
@@ -202,7 +205,7 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
 
     fingerprint = _config_fingerprint(settings, run, direction, scope, data.fingerprint())
     checkpoint_path = checkpoint_dir / CHECKPOINT_NAME if checkpoint_dir else None
-    step, history, seconds_before, resumed_from = 0, [], 0.0, 0
+    step, history, seconds_before, resumed_from, saved_step = 0, [], 0.0, 0, None
     if checkpoint_path and run["resume"] and checkpoint_path.is_file():
         state = torch.load(checkpoint_path, map_location=device, weights_only=False)
         if state["fingerprint"] != fingerprint:
@@ -219,13 +222,14 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
             if device.type == "cuda" and state.get("cuda_rng") is not None:
                 torch.cuda.set_rng_state(state["cuda_rng"])
             step, history, seconds_before = state["step"], state["history"], state["seconds"]
-            resumed_from = step
+            resumed_from = saved_step = step
             print(f"train {direction}/{scope}: resuming from step {step} ({checkpoint_path})")
     if on_log:
         for row in history:
             on_log(row)
 
     def save_checkpoint(at_step: int, elapsed: float) -> None:
+        nonlocal saved_step
         if not checkpoint_path:
             return
         if not _all_finite(generator, discriminator):
@@ -238,12 +242,12 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
             "sampler_rng": sampler.get_state(), "torch_rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state() if device.type == "cuda" else None,
         }, checkpoint_path)
+        saved_step = at_step
 
     def last_good() -> str:
-        if checkpoint_path and checkpoint_path.is_file():
-            saved = torch.load(checkpoint_path, map_location="cpu", weights_only=False)["step"]
-            return f"last good checkpoint: {checkpoint_path} (step {saved})"
-        return "no checkpoint was written"
+        if saved_step is None:
+            return "no checkpoint was written"
+        return f"last good checkpoint: {checkpoint_path} (step {saved_step})"
 
     generator.train()
     discriminator.train()
@@ -334,8 +338,8 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
     pairs = pd.read_parquet(pairs_dir / f"{direction}.parquet")
     splits = pd.read_parquet(pairs_dir / "splits.parquet")
     data = load_pair_data(pairs, splits, direction, scope, settings["size"])
-    has_val = not pairs[(pairs["split"] == "val") & ((pairs["class"] == scope) | (scope == "all"))].empty
-    validation = load_pair_data(pairs, splits, direction, scope, settings["size"], split="val") if has_val else None
+    validation = (load_pair_data(pairs, splits, direction, scope, settings["size"], split="val")
+                  if not pairs_in(pairs, "val", scope).empty else None)
     tile_side = int(data.targets.shape[-1])
     print(f"train {direction}/{scope}: {len(data.targets)} training pairs ({int(data.aligned.sum())} aligned), "
           f"preset '{run['preset']}' at {settings['size']} px, {settings['iterations']} iterations of batch "
@@ -374,6 +378,4 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
         (tmp / "train.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"train {direction}/{scope}: {result.steps} steps in {result.seconds:.1f} s "
           f"({summary['seconds_per_iteration']:.3f} s/it) -> {out_dir}")
-    if not all(math.isfinite(v) for v in summary["final_losses"].values() if v is not None):
-        raise TrainingDiverged(f"{direction}/{scope}: final losses are not finite")
     return summary

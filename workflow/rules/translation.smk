@@ -1,8 +1,10 @@
 # Translation stages: train (one job per direction and translation.scope entry) -> generate (per direction).
 # Training jobs take translation.threads cores each, so `--cores 2` runs them one after another
 # on a laptop and a cluster profile runs them side by side.
+# Both read the tile images the pair tables list, so they declare data/roi as well as data/pairs.
 
-DIRECTIONS = ["v2t", "t2v"]
+from vtgen.pairing import DIRECTIONS
+
 SCOPES = config["translation"]["scope"]
 PRESET = config["presets"][config["translation"]["preset"]]
 
@@ -11,6 +13,7 @@ rule train:
     """Train the conditional GAN of one direction for one scope entry ('all' or a class)."""
     input:
         "data/pairs",
+        "data/roi",
         "src/vtgen/train.py",
         "src/vtgen/gan.py",
         "src/vtgen/models.py",
@@ -21,7 +24,7 @@ rule train:
         preset=PRESET,
     threads: config["translation"]["threads"]
     wildcard_constraints:
-        direction="v2t|t2v",
+        direction="|".join(DIRECTIONS),
         scope="[^/]+",
     benchmark:
         "logs/benchmarks/train_{direction}_{scope}.tsv"
@@ -34,6 +37,7 @@ rule generate:
     """Translate the test split and generate.train_share of the training inputs of one direction."""
     input:
         "data/pairs",
+        "data/roi",
         expand("models/{{direction}}/{scope}", scope=SCOPES),
         "src/vtgen/generate.py",
     output:
@@ -43,7 +47,7 @@ rule generate:
         scope=SCOPES,
         device=config["translation"]["device"],
     wildcard_constraints:
-        direction="v2t|t2v",
+        direction="|".join(DIRECTIONS),
     benchmark:
         "logs/benchmarks/generate_{direction}.tsv"
     shell:
