@@ -65,6 +65,24 @@ def _translate(args, params) -> None:
                     args.direction)
 
 
+def _score(args, params) -> None:
+    from .score import run_score
+
+    run_score(params, args.pairs, args.generated, args.out)
+
+
+def _classify(args, params) -> None:
+    from .classify import run_classify
+
+    run_classify(params, args.modality, args.pairs, args.generated, args.out)
+
+
+def _report(args, params) -> None:
+    from .report import run_report
+
+    run_report(params, args.out)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vtgen", description="Visual-tactile cross-modal data generation pipeline.")
     sub = parser.add_subparsers(dest="stage", required=True)
@@ -92,6 +110,14 @@ def build_parser() -> argparse.ArgumentParser:
     generate.add_argument("--direction", required=True, choices=list(DIRECTIONS))
     generate.add_argument("--pairs", required=True, help="folder written by the pairs stage")
     generate.add_argument("--models", required=True, help="folder holding one trained model per scope entry")
+    score = stage("score", _score, "Colour-SSIM, PSNR, MS-SSIM of generated images, with reference levels")
+    score.add_argument("--pairs", required=True, help="folder written by the pairs stage")
+    score.add_argument("--generated", required=True, help="folder holding one generate output per direction")
+    classify = stage("classify", _classify, "texture classifier: real only vs real + generated, per modality")
+    classify.add_argument("--modality", required=True, choices=["visual", "tactile"])
+    classify.add_argument("--pairs", required=True, help="folder written by the pairs stage")
+    classify.add_argument("--generated", required=True, help="folder holding one generate output per direction")
+    stage("report", _report, "build reports/index.html, summary.md, metrics.json and figures from the run's outputs")
     translate = sub.add_parser("translate", help="translate your own images or folders with a trained model")
     translate.add_argument("inputs", nargs="+", help="images (PNG, JPEG, ... or .npy) or folders of them")
     translate.add_argument("--model", required=True, help="a trained model folder (models/<direction>/<scope>) or its generator.pt")
