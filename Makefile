@@ -1,12 +1,13 @@
 # Two commands do all the set-up on a fresh machine (Python 3.11):
 #   make run    create .venv if missing, then run the whole pipeline (snakemake --cores 2)
-#   make test   create .venv if missing, then run the tests
+#   make test   create .venv if missing, install Debian's chromium for the report's browser test if missing
+#               (apt-get, as root or through sudo), then run the tests
 PYTHON ?= python3
 VENV := .venv
 STAMP := $(VENV)/.installed
 export PATH := $(CURDIR)/$(VENV)/bin:$(PATH)
 
-.PHONY: run test test-all env clean
+.PHONY: run test test-all env browser clean
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
@@ -15,10 +16,17 @@ $(STAMP): pyproject.toml constraints.txt
 
 env: $(STAMP)
 
+# The report test opens reports/index.html in headless Chromium (Debian's package, driven by Playwright).
+browser:
+	@command -v chromium >/dev/null 2>&1 || { \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium >/dev/null \
+	  || echo "warning: could not install chromium; the browser test of the report will be skipped"; }
+
 run: $(STAMP)
 	snakemake --cores 2
 
-test: $(STAMP)
+test: $(STAMP) browser
 	pytest -q
 
 clean:

@@ -19,9 +19,13 @@ validate_params(config)
 
 include: "workflow/rules/data.smk"
 include: "workflow/rules/translation.smk"
+include: "workflow/rules/evaluation.smk"
+
+
+report: "workflow/report/workflow.rst"
 
 
 rule all:
     default_target: True
     input:
-        expand("data/generated/{direction}", direction=list(DIRECTIONS)),
+        "reports/index.html",

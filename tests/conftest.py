@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import copy
+import os
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +41,7 @@ def tiny_params(**overrides) -> dict:
     params["presets"]["fast"].update(TINY_MODEL)
     params["translation"].update(checkpoint_every=5, log_every=2)
     params["generate"].update(batch_size=8)
+    params["classify"].update(size=32, width=0.125, epochs=2, seeds=[0], batch_size=16)
     for section, values in overrides.items():
         params[section].update(values)
     return params
@@ -52,3 +57,33 @@ def write_image(path: Path, array: np.ndarray, convert: str | None = None) -> Pa
 
 def random_rgb(rng: np.random.Generator, size: int = 32) -> np.ndarray:
     return rng.integers(0, 256, (size, size, 3), dtype=np.uint8)
+
+
+BIN = str(Path(sys.executable).parent)
+ENV = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "DVC_NO_ANALYTICS": "1"}
+
+
+def make_project(where: Path, params: dict) -> Path:
+    """A copy of the workflow files with ``params`` as its params.yaml."""
+    where.mkdir(parents=True)
+    for name in ("Snakefile", "dvc.yaml", ".dvcignore"):
+        shutil.copy(REPO / name, where / name)
+    for name in ("workflow", "src"):
+        shutil.copytree(REPO / name, where / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    (where / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    return where
+
+
+def run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    result = subprocess.run(cmd, cwd=cwd, env=ENV, capture_output=True, text=True)
+    assert result.returncode == 0, f"{' '.join(cmd)} failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
+    return result
+
+
+@pytest.fixture(scope="session")
+def snakemake_project(tmp_path_factory):
+    project = make_project(tmp_path_factory.mktemp("smk") / "project", tiny_params())
+    result = run(["snakemake", "--cores", "2"], project)
+    return project, result
+
+

@@ -13,32 +13,16 @@ import pandas as pd
 import pytest
 import yaml
 
-from conftest import REPO, tiny_params
+from conftest import REPO, make_project, run, tiny_params
 
 pytestmark = pytest.mark.e2e
-BIN = str(Path(sys.executable).parent)
-ENV = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "DVC_NO_ANALYTICS": "1"}
-STAGES = ["render", "ingest", "roi", "pairs", "train", "generate"]
-BENCHMARKS = ["render", "ingest", "roi", "pairs", "train_v2t_all", "train_t2v_all", "generate_v2t", "generate_t2v"]
+STAGES = ["render", "ingest", "roi", "pairs", "train", "generate", "score", "classify", "report"]
+BENCHMARKS = ["render", "ingest", "roi", "pairs", "train_v2t_all", "train_t2v_all", "generate_v2t", "generate_t2v",
+              "score", "classify_visual", "classify_tactile"]
+REPORT_OUTPUTS = "reports/figures, reports/index.html, reports/metrics.json, reports/summary.md"
 OUTPUTS = {"data/raw/synthetic", "data/ingest", "data/roi", "data/pairs", "models/v2t/all", "models/t2v/all",
-           "data/generated/v2t", "data/generated/t2v"}
-
-
-def make_project(where: Path, params: dict) -> Path:
-    """A copy of the workflow files with ``params`` as its params.yaml."""
-    where.mkdir(parents=True)
-    for name in ("Snakefile", "dvc.yaml", ".dvcignore"):
-        shutil.copy(REPO / name, where / name)
-    for name in ("workflow", "src"):
-        shutil.copytree(REPO / name, where / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
-    (where / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    return where
-
-
-def run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess:
-    result = subprocess.run(cmd, cwd=cwd, env=ENV, capture_output=True, text=True)
-    assert result.returncode == 0, f"{' '.join(cmd)} failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
-    return result
+           "data/generated/v2t", "data/generated/t2v", "data/scores", "data/classify/visual", "data/classify/tactile",
+           REPORT_OUTPUTS}
 
 
 def output_tables(project: Path) -> dict[str, pd.DataFrame]:
@@ -52,13 +36,6 @@ def output_tables(project: Path) -> dict[str, pd.DataFrame]:
 
 def data_files(project: Path) -> set[str]:
     return {str(p.relative_to(project)) for p in (project / "data").rglob("*") if p.is_file() and p.name not in (".gitignore", ".snakemake_timestamp")}
-
-
-@pytest.fixture(scope="module")
-def snakemake_project(tmp_path_factory):
-    project = make_project(tmp_path_factory.mktemp("smk") / "project", tiny_params())
-    result = run(["snakemake", "--cores", "2"], project)
-    return project, result
 
 
 def test_snakemake_runs_data_stages(snakemake_project):
@@ -103,16 +80,19 @@ def test_snakemake_and_dvc_run_the_same_commands_and_outputs(snakemake_project, 
 
     # the same command, inputs and outputs per job (DVC's matrix and foreach stages resolved by DVC itself)
     dry = run(["snakemake", "--cores", "2", "-n", "-p", "--forceall"], smk).stdout
-    jobs = {m["output"]: m for m in re.finditer(
+    jobs = {", ".join(sorted(m["output"].split(", "))): m for m in re.finditer(
         r"rule (?P<rule>\w+):\n    input: (?P<input>[^\n]*)\n    output: (?P<output>[^\n]*)\n.*?Shell command: (?P<cmd>[^\n]*)",
         dry, flags=re.S)}
     from dvc.repo import Repo
 
     stages = Repo(str(project)).index.stages
-    assert set(jobs) == {", ".join(str(o.def_path) for o in stage.outs) for stage in stages} == OUTPUTS
+    def outputs(stage) -> str:
+        return ", ".join(sorted(str(o.def_path) for o in stage.outs))
+
+    assert set(jobs) == {outputs(stage) for stage in stages} == OUTPUTS
     assert {stage.name.split("@")[0] for stage in stages} == {job["rule"] for job in jobs.values()} == set(STAGES)
     for stage in stages:
-        job = jobs[", ".join(str(o.def_path) for o in stage.outs)]
+        job = jobs[outputs(stage)]
         deps = {str(d.def_path) for d in stage.deps} - {"params.yaml"}
         # a DVC dependency on a folder covers the Snakemake inputs inside it (generate reads models/<direction>/)
         inputs = {next((d for d in deps if i.startswith(d + "/")), i) for i in job["input"].split(", ")}
@@ -132,7 +112,8 @@ def test_snakemake_and_dvc_run_the_same_commands_and_outputs(snakemake_project, 
 
     # DVC tracks exactly the folders Snakemake writes, with the same files and contents
     lock = yaml.safe_load((project / "dvc.lock").read_text())["stages"]
-    assert {out["path"] for s in lock.values() for out in s["outs"]} == OUTPUTS
+    lock_outputs = {", ".join(sorted(out["path"] for out in s["outs"])) for s in lock.values()}
+    assert lock_outputs == OUTPUTS - {REPORT_OUTPUTS} | {REPORT_OUTPUTS.replace("reports/metrics.json, ", "")}
     assert data_files(project) == data_files(smk)
     for name, table in output_tables(project).items():
         pd.testing.assert_frame_equal(table, output_tables(smk)[name], obj=name)

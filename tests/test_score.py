@@ -1,0 +1,166 @@
+"""Score stage: protocols, reference levels and their values on the real ViTac sample."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from PIL import Image
+
+from vtgen.metrics import pairwise_colour_ssim
+from vtgen.score import CANDIDATES, by_class, reference_candidates, run_score
+
+CLASSES = ["felt", "denim"]
+
+
+def _tile(rng, colour, size=32):
+    base = np.array(colour, dtype=float)[None, None, :]
+    texture = rng.normal(0, 30, (size, size, 1))
+    return np.clip(base + texture, 0, 255).astype(np.uint8)
+
+
+def write_layout(root: Path, aligned: bool, perfect: bool, per_class: dict = None) -> dict:
+    """A tiny run layout: tiles, splits.parquet, pair tables and generated.parquet for both directions.
+
+    With ``perfect`` the generated outputs are copies of their targets' pixels (a perfect translator).
+    """
+    rng = np.random.default_rng(0)
+    colours = {"felt": {"visual": (60, 160, 60), "tactile": (140, 110, 120)},
+               "denim": {"visual": (40, 60, 150), "tactile": (120, 100, 130)}}
+    rows, pixels = [], {}
+    for name in CLASSES:
+        for split, count in (("train", 6), ("test", 3)):
+            for i in range(count):
+                for modality in ("visual", "tactile"):
+                    path = f"data/roi/tiles/{modality}/{name}/{split}_{i}.png"
+                    (root / path).parent.mkdir(parents=True, exist_ok=True)
+                    pixels[path] = _tile(rng, colours[name][modality])
+                    Image.fromarray(pixels[path]).save(root / path)
+                    rows.append({"path": path, "class": name, "modality": modality, "source": f"{name}/{split}{i}",
+                                 "split": split})
+    splits = pd.DataFrame(rows)
+    (root / "data/pairs").mkdir(parents=True)
+    splits.to_parquet(root / "data/pairs/splits.parquet")
+    for direction, (source, target) in {"v2t": ("visual", "tactile"), "t2v": ("tactile", "visual")}.items():
+        pairs = []
+        for row in splits[splits["modality"] == source].itertuples():
+            pairs.append({"direction": direction, "split": row.split, "class": row._2, "input_path": row.path,
+                          "target_path": row.path.replace(source, target), "input_source": row.source,
+                          "target_source": row.source, "aligned": aligned})
+        pairs = pd.DataFrame(pairs)
+        pairs.to_parquet(root / f"data/pairs/{direction}.parquet")
+        generated = []
+        for row in pairs[pairs["split"] == "test"].itertuples():
+            out = f"data/generated/{direction}/images/all/test/{row._3}/{Path(row.input_path).name}"
+            (root / out).parent.mkdir(parents=True, exist_ok=True)
+            image = pixels[row.target_path] if perfect else _tile(rng, (128, 128, 128))
+            Image.fromarray(image).save(root / out)
+            generated.append({"direction": direction, "scope": "all", "split": "test", "class": row._3,
+                              "input_path": row.input_path, "output_path": out,
+                              "ground_truth_path": row.target_path if aligned else "", "model": "m"})
+        pd.DataFrame(generated).to_parquet(root / f"data/generated/{direction}/generated.parquet")
+    return pixels
+
+
+@pytest.fixture
+def params(default_params):
+    return default_params
+
+
+def test_perfect_translator_scores_one_aligned_and_beats_every_baseline(tmp_path, monkeypatch, params):
+    write_layout(tmp_path, aligned=True, perfect=True)
+    monkeypatch.chdir(tmp_path)
+    summary = run_score(params, "data/pairs", "data/generated", "data/scores")
+    scores = pd.read_parquet("data/scores/scores.parquet")
+    generated = scores[scores["candidate"] == "generated"]
+    assert len(generated) == 2 * 2 * 3  # directions x classes x test tiles
+    assert np.allclose(generated["colour_ssim"], 1.0) and np.isinf(generated["psnr"]).all()
+    assert generated["ms_ssim"].isna().all()  # 32 px tiles are below MS-SSIM's minimum size
+    assert "not computed" in summary["ms_ssim"]
+    # nearest-real of a perfect output is its own ground truth (it is a real test image)
+    assert (generated["nearest_real_path"] == generated["ground_truth_path"]).all()
+    assert np.allclose(generated["nearest_real_colour_ssim"], 1.0)
+    for direction in ("v2t", "t2v"):
+        levels = summary["scores"][direction]
+        assert set(levels) == set(CANDIDATES)
+        for baseline in ("nearest_neighbour", "mean_image", "flat_mean_colour"):
+            assert levels["generated"]["colour_ssim"] > levels[baseline]["colour_ssim"]
+        assert levels["real_train"]["colour_ssim"] is None  # no aligned level for real vs real
+        assert summary["aligned_pairs"][direction] == 6
+    # the tables come as parquet and CSV, per class and overall
+    table = pd.read_csv("data/scores/by_class.csv")
+    assert set(table["class"]) == set(CLASSES) | {"(all)"}
+    assert json.loads(Path("data/scores/summary.json").read_text())["synthetic"] is True
+
+
+def test_unaligned_data_has_only_set_to_set_scores(tmp_path, monkeypatch, params):
+    write_layout(tmp_path, aligned=False, perfect=False)
+    monkeypatch.chdir(tmp_path)
+    summary = run_score(params, "data/pairs", "data/generated", "data/scores")
+    scores = pd.read_parquet("data/scores/scores.parquet")
+    assert scores["colour_ssim"].isna().all() and scores["set_colour_ssim"].notna().all()
+    assert summary["aligned_pairs"] == {"v2t": 0, "t2v": 0}
+    scores = scores[scores["direction"] == "v2t"]
+    # set-to-set is the mean over every real test image of the class: check one row by hand
+    row = scores[scores["candidate"] == "generated"].iloc[0]
+    reals = sorted(scores.loc[scores["class"] == row["class"], "nearest_real_path"].unique())
+    real_test = pd.read_parquet("data/pairs/splits.parquet")
+    real_test = real_test[(real_test["split"] == "test") & (real_test["class"] == row["class"])
+                          & (real_test["modality"] == "tactile")]
+    images = np.stack([np.asarray(Image.open(p)) for p in sorted(real_test["path"])])
+    mine = np.asarray(Image.open(row["image"]))[None]
+    expected = pairwise_colour_ssim(mine, images, 255.0)
+    assert row["set_colour_ssim"] == pytest.approx(expected.mean(), abs=1e-9)
+    assert row["nearest_real_colour_ssim"] == pytest.approx(expected.max(), abs=1e-9)
+    assert set(reals) <= set(real_test["path"])
+
+
+def test_reference_candidates_are_the_nearest_target_and_class_means():
+    train_inputs = torch.tensor([0, 100, 200, 50], dtype=torch.uint8)[:, None, None, None].expand(4, 3, 4, 4)
+    train_targets = torch.tensor([10, 20, 30, 41], dtype=torch.uint8)[:, None, None, None].expand(4, 3, 4, 4)
+    train_classes = np.array(["a", "a", "b", "b"])
+    test_inputs = torch.tensor([190, 5], dtype=torch.uint8)[:, None, None, None].expand(2, 3, 4, 4)
+    refs = reference_candidates(test_inputs.clone(), np.array(["b", "a"]), train_inputs.clone(),
+                                train_targets.clone(), train_classes)
+    assert refs["nearest_neighbour"][:, 0, 0, 0].tolist() == [30, 10]  # targets of inputs 200 and 0
+    assert refs["mean_image"][:, 0, 0, 0].tolist() == [36, 15]  # (30 + 41) / 2 = 35.5 -> 36
+    assert refs["flat_mean_colour"][:, 0, 0, 0].tolist() == [36, 15]
+    with pytest.raises(ValueError, match="no training targets"):
+        reference_candidates(test_inputs.clone(), np.array(["c", "a"]), train_inputs.clone(), train_targets.clone(),
+                             train_classes)
+
+
+def test_by_class_overall_row_averages_images():
+    scores = pd.DataFrame({"direction": "v2t", "scope": "all", "candidate": "generated",
+                           "class": ["a", "a", "b"], "colour_ssim": [0.2, 0.4, 0.9], "grey_ssim": 0.0, "psnr": 1.0,
+                           "ms_ssim": np.nan, "set_colour_ssim": [0.1, 0.3, 0.5], "nearest_real_colour_ssim": 0.0})
+    table = by_class(scores).set_index("class")
+    assert table.loc["a", "colour_ssim"] == pytest.approx(0.3)
+    assert table.loc["(all)", "colour_ssim"] == pytest.approx(0.5)
+    assert table.loc["(all)", "images"] == 3
+
+
+def _read(paths):
+    return np.stack([np.asarray(Image.open(p).convert("RGB")) for p in sorted(paths)])
+
+
+@pytest.mark.parametrize("modality, real_vs_real, flat, mean_image", [
+    ("tactile", 0.312, 0.450, 0.451),
+    ("visual", 0.483, 0.798, 0.778),
+])
+def test_reference_levels_on_the_real_vitac_sample_match_the_published_measurement(
+        vitac_root, modality, real_vs_real, flat, mean_image):
+    """SOURCE.md of the sample lists these levels (256 px tiles, every test against every train image)."""
+    suffix = modality[0]
+    train = _read((vitac_root / f"11{suffix}").glob("*.jpg"))
+    test = _read((vitac_root / f"11{suffix}_test").glob("*.jpg"))
+    assert pairwise_colour_ssim(test, train, 255.0).mean() == pytest.approx(real_vs_real, abs=0.0015)
+    as_tensor = torch.from_numpy(train).permute(0, 3, 1, 2).contiguous()
+    test_tensor = torch.from_numpy(test).permute(0, 3, 1, 2).contiguous()
+    refs = reference_candidates(test_tensor, np.array(["11"] * len(test)), as_tensor, as_tensor,
+                                np.array(["11"] * len(train)))
+    for name, level in (("flat_mean_colour", flat), ("mean_image", mean_image)):
+        candidates = refs[name].permute(0, 2, 3, 1).numpy()
+        assert pairwise_colour_ssim(candidates[:1], test, 255.0).mean() == pytest.approx(level, abs=0.0015), name
