@@ -1,0 +1,311 @@
+"""Texture classifier: an AlexNet-style CNN and its training loop (pure torch, no file layout).
+
+:class:`AlexNet` keeps Krizhevsky et al. (2012)'s shape - five convolutions (96, 256, 384,
+384, 256 channels, times ``width``), overlapping 3x3/2 max-pooling after conv 1, 2 and 5, then
+dropout and three linear layers ``fc6``, ``fc7`` (4096 x ``width`` units) and ``fc8`` - with
+two changes for training from scratch on small tiles:
+
+* BatchNorm after every convolution in place of local response normalisation, so a network
+  trained from random weights with Adam converges within the paper's 10 epochs; after each
+  epoch its running statistics are recomputed from up to 256 training images under the final
+  weights (:func:`refresh_norm_statistics`), since the usual moving average lags far behind
+  on epochs of a few dozen batches and made early test accuracies sit at chance;
+* the first convolution follows the input side: 11x11 stride 4 (the original) from 160 px,
+  5x5 stride 2 from 64 px, 3x3 stride 1 below, so the feature map never vanishes; an adaptive
+  average pool then brings it to ``min(6, side)`` squared (6 x 6 at 227 px, as in AlexNet).
+
+Networks take raw uint8 ``N x 3 x H x W`` tiles and scale them to [-1, 1] themselves.
+:func:`train_classifier` trains one from a seed and records test accuracy after every epoch;
+:func:`load_weights` starts from a user's state_dict with only the last linear layers trained.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+BASE_CHANNELS = (96, 256, 384, 384, 256)
+BASE_HIDDEN = 4096
+MIN_CHANNELS = 8
+MIN_SIZE = 32
+LINEAR_LAYERS = ("fc6", "fc7", "fc8")  # classifier.<name>; "the last N linear layers" counts back from fc8
+EVAL_BATCH = 256
+NORM_IMAGES = 256  # training images (a fresh random draw each epoch) that set the batch-norm statistics
+
+
+def first_conv(size: int) -> tuple[int, int, int]:
+    """``(kernel, stride, padding)`` of conv 1 for input side ``size``: AlexNet's 11/4 from 160 px, 5/2 from 64, 3/1 below."""
+    if size >= 160:
+        return 11, 4, 2
+    if size >= 64:
+        return 5, 2, 2
+    return 3, 1, 1
+
+
+def feature_side(size: int) -> int:
+    """Side of the map that conv 5's pooling leaves for a ``size`` x ``size`` input."""
+    kernel, stride, padding = first_conv(size)
+    side = (size + 2 * padding - kernel) // stride + 1
+    for _ in range(3):  # max-pools 3x3 stride 2 after conv 1, 2 and 5; the other convs keep the side
+        side = (side - 3) // 2 + 1
+    return side
+
+
+def scale_images(images: torch.Tensor) -> torch.Tensor:
+    """uint8 tiles -> float in [-1, 1], channels-last in memory (about 1.5x faster convolutions on CPU)."""
+    if images.dtype != torch.uint8:
+        raise ValueError(f"the classifier takes uint8 images (raw tiles), got {images.dtype}")
+    return (images.float() / 127.5 - 1.0).contiguous(memory_format=torch.channels_last)
+
+
+class AlexNet(nn.Module):
+    """AlexNet-style classifier of uint8 ``N x 3 x size x size`` tiles into ``num_classes`` logits.
+
+    ``width`` scales every conv's channels (at least 8) and the hidden units of fc6 and fc7;
+    ``batch_norm`` False gives the plain conv + ReLU stack (with conv biases) of the original.
+    """
+
+    def __init__(self, num_classes: int, size: int = 64, width: float = 0.25, batch_norm: bool = True,
+                 dropout: float = 0.5):
+        super().__init__()
+        if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 2:
+            raise ValueError(f"a classifier needs at least 2 classes, got {num_classes!r}")
+        if isinstance(size, bool) or not isinstance(size, int) or size < MIN_SIZE:
+            raise ValueError(f"input size must be an integer >= {MIN_SIZE}, got {size!r}")
+        if not width > 0:
+            raise ValueError(f"width must be > 0, got {width!r}")
+        self.num_classes, self.size, self.width = num_classes, size, width
+        channels = [max(MIN_CHANNELS, round(c * width)) for c in BASE_CHANNELS]
+        hidden = max(MIN_CHANNELS, round(BASE_HIDDEN * width))
+        kernel, stride, padding = first_conv(size)
+        shapes = [(3, channels[0], kernel, stride, padding), (channels[0], channels[1], 5, 1, 2),
+                  (channels[1], channels[2], 3, 1, 1), (channels[2], channels[3], 3, 1, 1),
+                  (channels[3], channels[4], 3, 1, 1)]
+        layers: list[tuple[str, nn.Module]] = []
+        for i, (c_in, c_out, k, s, p) in enumerate(shapes, start=1):
+            layers.append((f"conv{i}", nn.Conv2d(c_in, c_out, k, s, p, bias=not batch_norm)))
+            if batch_norm:
+                layers.append((f"norm{i}", nn.BatchNorm2d(c_out)))
+            layers.append((f"relu{i}", nn.ReLU(inplace=True)))
+            if i in (1, 2, 5):
+                layers.append((f"pool{i}", nn.MaxPool2d(3, 2)))
+        self.features = nn.Sequential(OrderedDict(layers))
+        self.pooled_side = min(6, feature_side(size))
+        self.avgpool = nn.AdaptiveAvgPool2d(self.pooled_side)
+        self.classifier = nn.Sequential(OrderedDict([
+            ("drop6", nn.Dropout(dropout)), ("fc6", nn.Linear(channels[4] * self.pooled_side ** 2, hidden)),
+            ("relu6", nn.ReLU(inplace=True)),
+            ("drop7", nn.Dropout(dropout)), ("fc7", nn.Linear(hidden, hidden)), ("relu7", nn.ReLU(inplace=True)),
+            ("fc8", nn.Linear(hidden, num_classes)),
+        ]))
+        self.to(memory_format=torch.channels_last)
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        """uint8 N x 3 x H x W -> float logits N x num_classes."""
+        return self.classifier(torch.flatten(self.avgpool(self.features(scale_images(images))), 1))
+
+
+def make_classifier(num_classes: int, settings: Mapping, seed: int) -> AlexNet:
+    """The network ``train_classifier`` starts from: AlexNet(size, width of ``settings``) initialised from ``seed``."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        return AlexNet(num_classes, settings["size"], settings["width"])
+
+
+def load_weights(model: AlexNet, path: str | Path, retrain_layers: int) -> dict:
+    """Load a state_dict file into ``model`` and leave only its last ``retrain_layers`` linear layers trainable.
+
+    The file holds ``torch.save(model.state_dict())`` of this architecture (or a dict with it under
+    ``state_dict``). An fc8 for another number of classes is not loaded: the model keeps its own
+    freshly initialised fc8. Any other missing, extra or differently shaped entry is a ValueError
+    naming the first such key. Returns ``{"reinitialised": [...], "trainable": [...]}``.
+    """
+    if isinstance(retrain_layers, bool) or retrain_layers not in range(1, len(LINEAR_LAYERS) + 1):
+        raise ValueError(f"retrain_layers must be 1 to {len(LINEAR_LAYERS)}, got {retrain_layers!r}")
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: weights file not found")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises pickle, runtime and zip errors alike for a file it cannot read
+        raise ValueError(f"{path}: not a torch state_dict file ({type(exc).__name__}: {exc})") from exc
+    if isinstance(state, Mapping) and isinstance(state.get("state_dict"), Mapping):
+        state = state["state_dict"]
+    if not isinstance(state, Mapping) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise ValueError(f"{path}: expected a state_dict (a mapping of names to tensors), got {type(state).__name__}")
+    own = model.state_dict()
+    missing = [key for key in own if key not in state]
+    if missing:
+        raise ValueError(f"{path}: key {missing[0]} is missing from the file ({len(missing)} missing); "
+                         f"it does not hold this architecture")
+    extra = [key for key in state if key not in own]
+    if extra:
+        raise ValueError(f"{path}: key {extra[0]} in the file is not in the model ({len(extra)} extra); "
+                         f"it does not hold this architecture")
+    merged, reinitialised = dict(own), []
+    last = f"classifier.{LINEAR_LAYERS[-1]}."
+    for key, tensor in own.items():
+        given = state[key]
+        if given.shape == tensor.shape:
+            merged[key] = given.to(tensor.dtype)
+        elif key.startswith(last) and given.shape[1:] == tensor.shape[1:]:
+            reinitialised.append(key)  # another number of classes: keep the model's own fresh fc8
+        else:
+            raise ValueError(f"{path}: key {key} has shape {tuple(given.shape)} in the file but "
+                             f"{tuple(tensor.shape)} in the model (check classify.size and classify.width)")
+    model.load_state_dict(merged)
+    for parameter in model.parameters():
+        parameter.requires_grad_(False)
+    trainable = list(LINEAR_LAYERS[-retrain_layers:])
+    for name in trainable:
+        for parameter in getattr(model.classifier, name).parameters():
+            parameter.requires_grad_(True)
+    return {"reinitialised": reinitialised, "trainable": trainable}
+
+
+@dataclass
+class ClassifierRun:
+    """One training run: per-epoch test accuracy, accuracy on each extra set, mean train loss; the trained model."""
+
+    test_accuracy: list[float]
+    extra_accuracy: dict[str, list[float]]
+    train_loss: list[float]
+    seconds: float
+    model: AlexNet
+    weights: dict | None = field(default=None)
+
+
+@torch.no_grad()
+def accuracy(model: nn.Module, images: torch.Tensor, labels: torch.Tensor, batch_size: int = EVAL_BATCH) -> float:
+    """Share of ``images`` whose arg-max logit is the label, in eval mode; NaN for an empty set."""
+    if len(images) == 0:
+        return math.nan
+    device = next(model.parameters()).device
+    was_training = model.training
+    model.eval()
+    correct = 0
+    for start in range(0, len(images), batch_size):
+        logits = model(images[start:start + batch_size].to(device))
+        correct += int((logits.argmax(dim=1).cpu() == labels[start:start + batch_size].cpu()).sum())
+    model.train(was_training)
+    return correct / len(images)
+
+
+def _check_set(name: str, images: torch.Tensor, labels: torch.Tensor, num_classes: int, size: int) -> None:
+    if not isinstance(images, torch.Tensor) or images.dtype != torch.uint8 or images.ndim != 4 or images.shape[1] != 3:
+        raise ValueError(f"{name}: expected uint8 images N x 3 x H x W, got "
+                         f"{getattr(images, 'dtype', type(images).__name__)} {tuple(getattr(images, 'shape', ()))}")
+    if images.shape[-2:] != (size, size):
+        raise ValueError(f"{name}: images are {images.shape[-1]}x{images.shape[-2]}, the classifier takes {size}x{size}")
+    if labels.ndim != 1 or len(labels) != len(images):
+        raise ValueError(f"{name}: {len(images)} images but labels of shape {tuple(labels.shape)}")
+    if len(labels) and (int(labels.min()) < 0 or int(labels.max()) >= num_classes):
+        raise ValueError(f"{name}: labels must lie in [0, {num_classes - 1}], got [{int(labels.min())}, {int(labels.max())}]")
+
+
+def _hold_frozen_norms(model: nn.Module) -> None:
+    """Batch-norm layers whose parameters are frozen keep their running statistics (eval mode)."""
+    for module in model.modules():
+        if isinstance(module, nn.modules.batchnorm._BatchNorm) and not any(p.requires_grad for p in module.parameters()):
+            module.eval()
+
+
+@torch.no_grad()
+def refresh_norm_statistics(model: AlexNet, images: torch.Tensor, batch_size: int = EVAL_BATCH) -> None:
+    """Set every trainable batch-norm layer's running mean and variance to their average over ``images``
+    under the current weights ("precise BN"), so evaluation does not use statistics that lag behind."""
+    norms = [m for m in model.features.modules()
+             if isinstance(m, nn.modules.batchnorm._BatchNorm) and any(p.requires_grad for p in m.parameters())]
+    if not norms or len(images) == 0:
+        return
+    device = next(model.parameters()).device
+    was_training, momenta = model.training, [m.momentum for m in norms]
+    for module in norms:
+        module.reset_running_stats()
+        module.momentum = None  # cumulative average over the batches below
+        module.train()
+    for start in range(0, len(images), batch_size):
+        model.features(scale_images(images[start:start + batch_size].to(device)))
+    for module, momentum in zip(norms, momenta):
+        module.momentum = momentum
+    model.train(was_training)
+
+
+def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch.Tensor, test_y: torch.Tensor,
+                     num_classes: int, settings: Mapping, seed: int, device: str | torch.device = "cpu",
+                     extra_eval: Mapping[str, tuple[torch.Tensor, torch.Tensor]] | None = None,
+                     weights: str | Path | None = None, retrain_layers: int = 2,
+                     progress: Callable[[int, dict], None] | None = None) -> ClassifierRun:
+    """Train :func:`make_classifier` (``settings``: size, width, epochs, batch_size, lr; optional flip, default True).
+
+    Images are uint8 ``N x 3 x size x size``, labels integers in ``[0, num_classes)``. Each epoch
+    visits the training set once in a seeded shuffled order, in mini-batches (the last one may be
+    smaller), with Adam at ``lr`` on cross-entropy; with ``flip`` each image is mirrored left-right
+    with probability 1/2. After every epoch the model is evaluated (eval mode, no grad) on the
+    test set and on each ``extra_eval`` set, and ``progress(epoch, row)`` is called. Everything
+    random derives from ``seed`` (the caller's global RNG state is left untouched), so on CPU the
+    same seed gives identical accuracies. ``weights`` starts from a file via :func:`load_weights`.
+    """
+    if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 2:
+        raise ValueError(f"classification needs at least 2 classes, got {num_classes!r}")
+    if len(train_x) == 0:
+        raise ValueError("the training set is empty")
+    size, epochs, batch_size = settings["size"], settings["epochs"], settings["batch_size"]
+    _check_set("training set", train_x, train_y, num_classes, size)
+    _check_set("test set", test_x, test_y, num_classes, size)
+    extra_eval = dict(extra_eval or {})
+    for name, (x, y) in extra_eval.items():
+        _check_set(f"evaluation set {name!r}", x, y, num_classes, size)
+    device = torch.device(device)
+    flip = bool(settings.get("flip", True))
+
+    model = make_classifier(num_classes, settings, seed)
+    loaded = load_weights(model, weights, retrain_layers) if weights else None
+    model.to(device)
+    optimiser = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=settings["lr"])
+    images, labels = train_x.to(device), train_y.long().to(device)
+    sampler = torch.Generator().manual_seed(seed)
+    count = len(images)
+    test_accuracy, train_loss = [], []
+    extra_accuracy: dict[str, list[float]] = {name: [] for name in extra_eval}
+    started = time.perf_counter()
+    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+        torch.manual_seed(seed)  # dropout draws from the global generator
+        for epoch in range(1, epochs + 1):
+            model.train()
+            _hold_frozen_norms(model)
+            order = torch.randperm(count, generator=sampler)
+            mirrored = torch.rand(count, generator=sampler) < 0.5
+            total = torch.zeros((), device=device)
+            for start in range(0, count, batch_size):
+                index = order[start:start + batch_size]
+                x = images[index.to(device)]
+                if flip:
+                    x = torch.where(mirrored[index].to(device).view(-1, 1, 1, 1), x.flip(-1), x)
+                loss = F.cross_entropy(model(x), labels[index.to(device)])
+                optimiser.zero_grad(set_to_none=True)
+                loss.backward()
+                optimiser.step()
+                total += loss.detach() * len(index)
+            mean_loss = float(total) / count
+            if not math.isfinite(mean_loss):
+                raise RuntimeError(f"classifier training diverged: mean loss {mean_loss} in epoch {epoch} (seed {seed}); "
+                                   f"lower classify.lr")
+            train_loss.append(mean_loss)
+            refresh_norm_statistics(model, images[order[:NORM_IMAGES].to(device)])
+            test_accuracy.append(accuracy(model, test_x, test_y))
+            for name, (x, y) in extra_eval.items():
+                extra_accuracy[name].append(accuracy(model, x, y))
+            if progress:
+                progress(epoch, {"train_loss": mean_loss, "test_accuracy": test_accuracy[-1],
+                                 **{name: values[-1] for name, values in extra_accuracy.items()}})
+    model.eval()
+    return ClassifierRun(test_accuracy, extra_accuracy, train_loss, time.perf_counter() - started, model.cpu(), loaded)

@@ -1,0 +1,277 @@
+"""Classify stage: does adding generated images help a texture classifier? (the paper's Section V-C)
+
+For one modality, an AlexNet-style classifier (:mod:`vtgen.classifier`) is trained once per
+seed in each setting and its test accuracy recorded after every epoch:
+
+* ``real`` - the real training tiles;
+* ``real+generated`` - those plus every generated training image of the modality;
+* ``low-data real`` - a per-class share ``classify.low_data_fraction`` of the real training tiles
+  (at least one per class), one subset per seed, shared by both low-data settings;
+* ``low-data real+generated`` - that subset plus every generated training image.
+
+Generated images of a modality come from the direction that produces it (tactile from v2t,
+visual from t2v); all scope entries' images are used. Only rows generated from training inputs
+enter training; the rows generated from test inputs form the GAN-test set, scored after every
+epoch by the ``real`` classifiers (a real-only classifier applied to generated images). A
+generated training row whose input is not a training tile is refused as a split leak. Without
+generated training images the two ``+generated`` settings are skipped (noted in summary.json).
+Test images always are the real test-split tiles; the validation split is not used.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+from tqdm import tqdm
+
+from .classifier import train_classifier
+from .imageio import atomic_output_dir
+from .pairing import DIRECTIONS
+from .train import read_tiles, resolve_device
+
+SETTINGS = ("real", "real+generated", "low-data real", "low-data real+generated")
+ACCURACY_COLUMNS = {
+    "modality": "object", "setting": "object", "seed": "int64", "epoch": "int64", "test_accuracy": "float64",
+    "gan_test_accuracy": "float64", "train_images": "int64", "real_images": "int64", "generated_images": "int64",
+    "seconds": "float64",
+}
+
+
+def direction_producing(modality: str) -> str:
+    """The translation direction whose output is ``modality`` (tactile <- v2t, visual <- t2v)."""
+    for direction, (_, target) in DIRECTIONS.items():
+        if target == modality:
+            return direction
+    raise ValueError(f"unknown modality '{modality}' (allowed: {', '.join(t for _, t in DIRECTIONS.values())})")
+
+
+def check_generated_splits(generated: pd.DataFrame, splits: pd.DataFrame, direction: str) -> None:
+    """Raise ValueError unless every generated ``train`` row comes from a training input tile and every
+    ``test`` row from a test input tile of the direction's source modality (no split leaks)."""
+    source = DIRECTIONS[direction][0]
+    tile_split = dict(zip(splits.loc[splits["modality"] == source, "path"],
+                          splits.loc[splits["modality"] == source, "split"]))
+    for split in ("train", "test"):
+        rows = generated[generated["split"] == split]
+        found = rows["input_path"].map(tile_split)
+        wrong = rows[found != split]
+        if len(wrong):
+            first, actual = wrong.iloc[0], found[found != split].iloc[0]
+            where = "not a tile in splits.parquet" if pd.isna(actual) else f"a {actual}-split tile"
+            kind = "split leak: " if split == "train" and actual == "test" else "inconsistent generated table: "
+            raise ValueError(f"{kind}{len(wrong)} generated '{split}' image(s) of {direction} come from inputs that are "
+                             f"not {split}-split {source} tiles; first: {first['output_path']} from {first['input_path']} "
+                             f"({where}); rerun the generate stage on these splits")
+
+
+def low_data_subset(labels: np.ndarray, fraction: float, seed: int) -> np.ndarray:
+    """Sorted indices of a per-class share ``fraction`` of ``labels`` (rounded, at least 1 per class), drawn with ``seed``."""
+    rng = np.random.default_rng(seed)
+    chosen = []
+    for label in np.unique(labels):
+        members = np.flatnonzero(labels == label)
+        keep = max(1, int(round(fraction * len(members))))
+        chosen.append(rng.choice(members, size=keep, replace=False))
+    return np.sort(np.concatenate(chosen)) if chosen else np.zeros(0, dtype=int)
+
+
+def _mean_std(values) -> tuple[float | None, float | None]:
+    """Mean and sample standard deviation (0 for one value) of the finite ``values``; None when there are none."""
+    finite = [float(v) for v in values if v is not None and math.isfinite(v)]
+    if not finite:
+        return None, None
+    return float(np.mean(finite)), float(np.std(finite, ddof=1)) if len(finite) > 1 else 0.0
+
+
+def _finite_list(values) -> list[float | None]:
+    """Floats for JSON: NaN (an empty test set) becomes None."""
+    return [float(v) if math.isfinite(v) else None for v in values]
+
+
+def summarise(table: pd.DataFrame) -> tuple[dict, dict | None]:
+    """Per setting: final-epoch accuracy mean/std over seeds and per-epoch means/stds; the same for the GAN-test."""
+    per_setting, gan_test = {}, None
+    for setting in [s for s in SETTINGS if s in set(table["setting"])]:
+        rows = table[table["setting"] == setting]
+        by_epoch = rows.groupby("epoch")["test_accuracy"]
+        final = rows[rows["epoch"] == rows["epoch"].max()]
+        mean, std = _mean_std(final["test_accuracy"])
+        per_setting[setting] = {
+            "final_mean": mean, "final_std": std, "seeds": int(final["seed"].nunique()),
+            "epoch_mean": _finite_list(by_epoch.mean()),
+            "epoch_std": _finite_list(by_epoch.std(ddof=1).fillna(0.0)),
+            "train_images": int(final["train_images"].iloc[0]), "generated_images": int(final["generated_images"].iloc[0]),
+        }
+        if rows["gan_test_accuracy"].notna().any():
+            gan = rows.groupby("epoch")["gan_test_accuracy"]
+            mean, std = _mean_std(final["gan_test_accuracy"])
+            gan_test = {"setting": setting, "final_mean": mean, "final_std": std,
+                        "epoch_mean": _finite_list(gan.mean()),
+                        "epoch_std": _finite_list(gan.std(ddof=1).fillna(0.0))}
+    return per_setting, gan_test
+
+
+def plot_curves(path: Path, modality: str, per_setting: dict, gan_test: dict | None, message: str | None = None) -> None:
+    """Test accuracy against epoch: mean line and a band of ± one standard deviation over seeds per setting."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(figsize=(7, 4.5), dpi=110)
+    if message:
+        axes.text(0.5, 0.5, message, ha="center", va="center", wrap=True, transform=axes.transAxes)
+        axes.set_axis_off()
+    else:
+        curves = [(name, stats, "-") for name, stats in per_setting.items()]
+        if gan_test:
+            curves.append(("GAN-test (real classifier on generated test images)", gan_test, "--"))
+        for name, stats, style in curves:
+            epochs = np.arange(1, len(stats["epoch_mean"]) + 1)
+            mean = np.asarray(stats["epoch_mean"], dtype=float)
+            std = np.asarray(stats["epoch_std"], dtype=float)
+            line, = axes.plot(epochs, mean, style, marker="o", markersize=3, label=name)
+            axes.fill_between(epochs, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+        axes.set_xlabel("epoch")
+        axes.set_ylabel("test accuracy")
+        axes.set_ylim(0, 1.02)
+        axes.grid(alpha=0.3)
+        axes.legend(fontsize=8, loc="lower right")
+    axes.set_title(f"{modality} texture classification (mean ± std over seeds)")
+    figure.tight_layout()
+    figure.savefig(path)
+    plt.close(figure)
+
+
+def _write_outputs(tmp: Path, table: pd.DataFrame, summary: dict, per_setting: dict, gan_test: dict | None,
+                   message: str | None) -> None:
+    table = table.astype(ACCURACY_COLUMNS)[list(ACCURACY_COLUMNS)]
+    table.to_parquet(tmp / "accuracy.parquet", index=False)
+    table.to_csv(tmp / "accuracy.csv", index=False)
+    (tmp / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    plot_curves(tmp / "curves.png", summary["modality"], per_setting, gan_test, message)
+
+
+def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_root: str | Path, out_dir: str | Path,
+                 progress: bool = True) -> dict:
+    """Stage entry: train and test the classifiers of ``modality``; write ``out_dir`` atomically.
+
+    Reads ``pairs_dir/splits.parquet`` and ``generated_root/<direction>/generated.parquet`` (paths in
+    them relative to the working directory). Writes accuracy.parquet and accuracy.csv (one row per
+    setting, seed and epoch; columns ACCURACY_COLUMNS, gan_test_accuracy NaN outside ``real``),
+    summary.json and curves.png. With fewer than 2 classes nothing is trained: the tables are empty
+    and summary.json's ``status`` says why; otherwise ``status`` is "ok".
+    """
+    cfg = params["classify"]
+    torch.set_num_threads(cfg["threads"])
+    direction = direction_producing(modality)
+    pairs_dir, generated_root, out_dir = Path(pairs_dir), Path(generated_root), Path(out_dir)
+    splits = pd.read_parquet(pairs_dir / "splits.parquet")
+    generated_file = generated_root / direction / "generated.parquet"
+    if not generated_file.is_file():
+        raise FileNotFoundError(f"{generated_file}: no generated images of {modality} (run the generate stage for {direction})")
+    generated = pd.read_parquet(generated_file)
+    check_generated_splits(generated, splits, direction)
+
+    real = splits[splits["modality"] == modality]
+    real_train = real[real["split"] == "train"].sort_values("path")
+    classes = sorted(real_train["class"].unique())
+    summary: dict = {"modality": modality, "direction": direction, "classes": classes, "params": dict(cfg),
+                     "weights": cfg["weights"] or None, "notes": []}
+    if len(classes) < 2:
+        held = f" ({classes[0]})" if classes else ""
+        status = f"not applicable: classification needs at least 2 classes, the data has {len(classes)}{held}"
+        summary.update(status=status, counts={"real_train": len(real_train)}, settings={}, skipped={}, gan_test=None)
+        with atomic_output_dir(out_dir) as tmp:
+            _write_outputs(tmp, pd.DataFrame(columns=list(ACCURACY_COLUMNS)), summary, {}, None, status)
+        print(f"classify {modality}: warning: {status}; empty tables -> {out_dir}")
+        return summary
+
+    label_of = {name: i for i, name in enumerate(classes)}
+    real_test = real[real["split"] == "test"].sort_values("path")
+    gen_train = generated[generated["split"] == "train"].sort_values(["scope", "output_path"])
+    gen_test = generated[generated["split"] == "test"].sort_values(["scope", "output_path"])
+    for name, frame in (("real test", real_test), ("generated training", gen_train), ("generated test", gen_test)):
+        unknown = sorted(set(frame["class"]) - set(classes))
+        if unknown:
+            summary["notes"].append(f"{name} images of classes without real training tiles left out: {', '.join(unknown)}")
+    real_test, gen_train, gen_test = (f[f["class"].isin(classes)] for f in (real_test, gen_train, gen_test))
+    test_paths = set(real[real["split"] == "test"]["path"])
+    leaked = test_paths & (set(real_train["path"]) | set(gen_train["output_path"]))
+    if leaked:  # check_generated_splits has vetted the inputs; this guards the assembled sets themselves
+        raise ValueError(f"split leak: {len(leaked)} test image(s) in the training set, e.g. {sorted(leaked)[0]}")
+
+    size = cfg["size"]
+
+    def load(frame: pd.DataFrame, column: str) -> tuple[torch.Tensor, torch.Tensor]:
+        return (read_tiles(list(frame[column]), size),
+                torch.tensor([label_of[c] for c in frame["class"]], dtype=torch.long))
+
+    train_x, train_y = load(real_train, "path")
+    test_x, test_y = load(real_test, "path")
+    gen_x, gen_y = load(gen_train, "output_path")
+    gan_x, gan_y = load(gen_test, "output_path")
+    counts = {"real_train": len(train_x), "real_test": len(test_x), "generated_train": len(gen_x),
+              "generated_test": len(gan_x), "per_class_real_train": real_train["class"].value_counts().sort_index().to_dict(),
+              "low_data_real_train": {}}
+    skipped = {}
+    settings = list(SETTINGS)
+    if len(gen_x) == 0:
+        reason = f"no generated training images of {modality} in {generated_file} (generate.train_share is 0?)"
+        skipped = {s: reason for s in SETTINGS if s.endswith("+generated")}
+        settings = [s for s in SETTINGS if s not in skipped]
+    if len(gan_x) == 0:
+        summary["notes"].append(f"no generated test images of {modality}: no GAN-test")
+    if len(test_x) == 0:
+        summary["notes"].append(f"no real test tiles of {modality}: test accuracy is NaN")
+
+    device = resolve_device(params["translation"]["device"])
+    weights = cfg["weights"] or None
+    if weights and not Path(weights).is_file():
+        raise ValueError(f"{weights}: weights file not found (classify.weights; \"\" trains from scratch)")
+    rows = []
+    bar = tqdm(total=len(settings) * len(cfg["seeds"]), desc=f"classify {modality}", unit="run", disable=not progress,
+               dynamic_ncols=True)
+    for seed in cfg["seeds"]:
+        subset = torch.from_numpy(low_data_subset(train_y.numpy(), cfg["low_data_fraction"], seed))
+        counts["low_data_real_train"][str(seed)] = len(subset)
+        for setting in settings:
+            real_x, real_y = (train_x[subset], train_y[subset]) if setting.startswith("low-data") else (train_x, train_y)
+            use_generated = setting.endswith("+generated")
+            x = torch.cat([real_x, gen_x]) if use_generated else real_x
+            y = torch.cat([real_y, gen_y]) if use_generated else real_y
+            extra = {"gan_test": (gan_x, gan_y)} if setting == "real" and len(gan_x) else None
+            bar.set_description(f"classify {modality}: {setting}, seed {seed}")
+
+            def show(epoch: int, row: dict) -> None:
+                bar.set_postfix({"epoch": epoch, "acc": f"{row['test_accuracy']:.3f}", "loss": f"{row['train_loss']:.3f}"},
+                                refresh=True)
+
+            run = train_classifier(x, y, test_x, test_y, len(classes), cfg, seed, device, extra_eval=extra,
+                                   weights=weights, retrain_layers=cfg["retrain_layers"], progress=show)
+            gan = run.extra_accuracy.get("gan_test", [math.nan] * len(run.test_accuracy))
+            for epoch, (acc, gan_acc) in enumerate(zip(run.test_accuracy, gan), start=1):
+                rows.append({"modality": modality, "setting": setting, "seed": seed, "epoch": epoch,
+                             "test_accuracy": acc, "gan_test_accuracy": gan_acc, "train_images": len(x),
+                             "real_images": len(real_x), "generated_images": len(x) - len(real_x),
+                             "seconds": run.seconds})
+            bar.update(1)
+    bar.close()
+
+    table = pd.DataFrame(rows, columns=list(ACCURACY_COLUMNS))
+    per_setting, gan_test = summarise(table)
+    summary.update(status="ok", device=str(device), counts=counts, settings=per_setting, skipped=skipped,
+                   gan_test=gan_test, wall_seconds=round(float(table.groupby(["setting", "seed"])["seconds"].first().sum()), 2))
+    with atomic_output_dir(out_dir) as tmp:
+        _write_outputs(tmp, table, summary, per_setting, gan_test, None)
+    finals = ", ".join(f"{name} {s['final_mean']:.3f}±{s['final_std']:.3f}" for name, s in per_setting.items()
+                       if s["final_mean"] is not None)
+    gan_text = f", GAN-test {gan_test['final_mean']:.3f}" if gan_test and gan_test["final_mean"] is not None else ""
+    print(f"classify {modality}: final test accuracy over {len(cfg['seeds'])} seed(s): {finals}{gan_text} "
+          f"({len(classes)} classes, {summary['wall_seconds']:.0f} s training) -> {out_dir}")
+    return summary

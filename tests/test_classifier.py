@@ -1,0 +1,245 @@
+"""Texture classifier and the classify stage: shapes, learning, determinism, fine-tuning, the stage's tables."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+import yaml
+
+from conftest import tiny_params, write_image
+from vtgen.classifier import AlexNet, first_conv, load_weights, make_classifier, train_classifier
+from vtgen.classify import ACCURACY_COLUMNS, SETTINGS, low_data_subset, run_classify
+from vtgen.cli import main
+
+TINY = dict(size=32, width=0.125, epochs=3, batch_size=16, lr=0.001)
+
+
+def stripes(count_per_class: int, seed: int, size: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
+    """Three classes of noisy grey stripes: horizontal, vertical, diagonal, with random period and phase."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:size, 0:size]
+    images, labels = [], []
+    for label, axis in enumerate((yy, xx, xx + yy)):
+        for _ in range(count_per_class):
+            period, phase = rng.uniform(5, 9), rng.uniform(0, 2 * np.pi)
+            wave = 128 + 80 * np.sin(2 * np.pi * axis / period + phase)
+            image = np.clip(wave[..., None] + rng.normal(0, 30, (size, size, 3)), 0, 255).astype(np.uint8)
+            images.append(image)
+            labels.append(label)
+    return torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2).contiguous(), torch.tensor(labels)
+
+
+@pytest.mark.parametrize("size", [32, 64, 227])
+def test_alexnet_output_shape_for_sizes_and_widths(size):
+    images = torch.randint(0, 256, (2, 3, size, size), dtype=torch.uint8)
+    counts = []
+    for width in (0.125, 0.25):
+        model = AlexNet(5, size, width).eval()
+        assert model(images).shape == (2, 5)
+        counts.append(sum(p.numel() for p in model.parameters()))
+    assert counts[0] < counts[1]
+    assert [name for name, m in model.classifier.named_children() if isinstance(m, torch.nn.Linear)] == ["fc6", "fc7", "fc8"]
+    if size == 227:
+        assert first_conv(227) == (11, 4, 2) and model.pooled_side == 6  # AlexNet's own layout
+        assert model.features.conv1.out_channels == 24 and model.classifier.fc6.out_features == 1024
+
+
+def test_alexnet_refuses_bad_arguments_and_float_images():
+    with pytest.raises(ValueError, match="at least 2 classes"):
+        AlexNet(1)
+    with pytest.raises(ValueError, match="input size"):
+        AlexNet(3, size=16)
+    with pytest.raises(ValueError, match="uint8"):
+        AlexNet(3, 32, 0.125)(torch.zeros(1, 3, 32, 32))
+
+
+def test_classifier_learns_stripe_orientation():
+    train_x, train_y = stripes(40, seed=0)
+    test_x, test_y = stripes(15, seed=1)
+    run = train_classifier(train_x, train_y, test_x, test_y, 3, dict(TINY, epochs=4), seed=0,
+                           extra_eval={"again": (test_x, test_y)})
+    assert len(run.test_accuracy) == len(run.train_loss) == 4
+    assert run.test_accuracy[-1] > 0.8  # chance is 1/3
+    assert run.train_loss[-1] < run.train_loss[0]
+    assert run.extra_accuracy["again"] == run.test_accuracy
+    assert not run.model.training and run.seconds > 0
+
+
+def test_same_seed_same_accuracies_other_seed_other_weights():
+    train_x, train_y = stripes(10, seed=0)
+    test_x, test_y = stripes(5, seed=1)
+    state = torch.get_rng_state()
+    first = train_classifier(train_x, train_y, test_x, test_y, 3, dict(TINY, epochs=2), seed=3)
+    second = train_classifier(train_x, train_y, test_x, test_y, 3, dict(TINY, epochs=2), seed=3)
+    assert first.test_accuracy == second.test_accuracy and first.train_loss == second.train_loss
+    assert torch.equal(torch.get_rng_state(), state)  # the caller's random state is left alone
+    same, other = make_classifier(3, TINY, 0), make_classifier(3, TINY, 1)
+    assert torch.equal(same.features.conv1.weight, make_classifier(3, TINY, 0).features.conv1.weight)
+    assert not torch.equal(same.features.conv1.weight, other.features.conv1.weight)
+
+
+def test_train_classifier_refuses_bad_sets():
+    x, y = stripes(2, seed=0)
+    with pytest.raises(ValueError, match="at least 2 classes"):
+        train_classifier(x, y * 0, x, y * 0, 1, TINY, 0)
+    with pytest.raises(ValueError, match="empty"):
+        train_classifier(x[:0], y[:0], x, y, 3, TINY, 0)
+    with pytest.raises(ValueError, match=r"labels must lie in \[0, 2\]"):
+        train_classifier(x, y + 1, x, y, 3, TINY, 0)
+    with pytest.raises(ValueError, match="classifier takes 64x64"):
+        train_classifier(x, y, x, y, 3, dict(TINY, size=64), 0)
+
+
+def test_load_weights_retrains_only_the_last_layers(tmp_path):
+    source = make_classifier(5, TINY, seed=7)
+    torch.save(source.state_dict(), tmp_path / "weights.pt")
+    saved = {k: v.clone() for k, v in source.state_dict().items()}
+    x, y = stripes(8, seed=0)
+    run = train_classifier(x, y, x, y, 3, dict(TINY, epochs=2), seed=0, weights=tmp_path / "weights.pt",
+                           retrain_layers=2)
+    assert run.weights == {"reinitialised": ["classifier.fc8.weight", "classifier.fc8.bias"], "trainable": ["fc7", "fc8"]}
+    after = run.model.state_dict()
+    for key, value in saved.items():
+        if key.startswith(("classifier.fc7.", "classifier.fc8.")):
+            continue
+        assert torch.equal(after[key], value), f"{key} changed although frozen"  # batch-norm statistics included
+    assert not torch.equal(after["classifier.fc7.weight"], saved["classifier.fc7.weight"])
+    assert after["classifier.fc8.weight"].shape == (3, source.classifier.fc8.in_features)
+    trainable = {name for name, p in run.model.named_parameters() if p.requires_grad}
+    assert trainable == {"classifier.fc7.weight", "classifier.fc7.bias", "classifier.fc8.weight", "classifier.fc8.bias"}
+
+
+def test_load_weights_errors_name_the_problem(tmp_path):
+    model = make_classifier(3, TINY, 0)
+    with pytest.raises(ValueError, match="not found"):
+        load_weights(model, tmp_path / "missing.pt", 2)
+    (tmp_path / "text.pt").write_text("not a torch file")
+    with pytest.raises(ValueError, match="not a torch state_dict"):
+        load_weights(model, tmp_path / "text.pt", 2)
+    torch.save(make_classifier(3, dict(TINY, width=0.25), 0).state_dict(), tmp_path / "wide.pt")
+    with pytest.raises(ValueError, match=r"features\.conv1\.weight has shape \(24, 3, 3, 3\) in the file but \(12, 3, 3, 3\)"):
+        load_weights(model, tmp_path / "wide.pt", 2)
+    torch.save({"conv.weight": torch.zeros(1)}, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="features.conv1.weight is missing"):
+        load_weights(model, tmp_path / "other.pt", 2)
+    with pytest.raises(ValueError, match="retrain_layers"):
+        load_weights(model, tmp_path / "wide.pt", 0)
+
+
+def test_low_data_subset_is_stratified_and_seeded():
+    labels = np.repeat([0, 1, 2], [10, 20, 3])
+    chosen = low_data_subset(labels, 0.1, seed=0)
+    assert np.bincount(labels[chosen]).tolist() == [1, 2, 1]  # at least one per class
+    assert np.array_equal(chosen, low_data_subset(labels, 0.1, seed=0))
+    assert not np.array_equal(low_data_subset(labels, 0.5, seed=0), low_data_subset(labels, 0.5, seed=1))
+
+
+CLASSES = ("denim", "felt", "satin")
+COLOURS = {"denim": (40, 60, 150), "felt": (150, 40, 40), "satin": (200, 200, 200)}
+
+
+def fake_layout(root, classes=CLASSES, train=6, test=2, generated_train=3):
+    """Real tiles of both modalities (train/val/test), and v2t and t2v tables of generated images under ``root``."""
+    rng = np.random.default_rng(0)
+    rows = []
+
+    def tile(path, cls):
+        noise = rng.normal(0, 25, (32, 32, 3))
+        write_image(root / path, np.clip(np.array(COLOURS[cls]) + noise, 0, 255).astype(np.uint8))
+        return path
+
+    for cls in classes:
+        for modality in ("visual", "tactile"):
+            for split, count in (("train", train), ("val", 1), ("test", test)):
+                for i in range(count):
+                    path = tile(f"data/roi/{modality}/{cls}/{split}{i}.png", cls)
+                    rows.append(dict(path=path, **{"class": cls}, modality=modality, source=f"{cls}-{split}{i}", split=split))
+    splits = pd.DataFrame(rows)
+    (root / "data/pairs").mkdir(parents=True)
+    splits.to_parquet(root / "data/pairs/splits.parquet")
+    for direction, source in (("v2t", "visual"), ("t2v", "tactile")):
+        generated = []
+        for cls in classes:
+            inputs = splits[(splits["modality"] == source) & (splits["class"] == cls)]
+            for split, keep in (("train", generated_train), ("test", test)):
+                for path in inputs[inputs["split"] == split]["path"].iloc[:keep]:
+                    out = tile(f"data/generated/{direction}/images/all/{split}/{cls}/{path.split('/')[-1]}", cls)
+                    generated.append(dict(direction=direction, scope="all", split=split, **{"class": cls}, input_path=path,
+                                          output_path=out, ground_truth_path=None, model="models/x/all/generator.pt"))
+        pd.DataFrame(generated).to_parquet(root / f"data/generated/{direction}/generated.parquet")
+    return splits
+
+
+def classify_params(**overrides):
+    return tiny_params(classify=dict(dict(size=32, width=0.125, epochs=2, seeds=[0, 1], batch_size=8,
+                                          low_data_fraction=0.34), **overrides))
+
+
+def test_stage_writes_tables_summary_and_plot(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    fake_layout(tmp_path)
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(classify_params()))
+    assert main(["classify", "--params", "params.yaml", "--modality", "tactile", "--pairs", "data/pairs",
+                 "--generated", "data/generated", "--out", "out/tactile"]) == 0
+    out = tmp_path / "out/tactile"
+    table = pd.read_parquet(out / "accuracy.parquet")
+    assert list(table.columns) == list(ACCURACY_COLUMNS)
+    assert len(table) == len(SETTINGS) * 2 * 2 and len(pd.read_csv(out / "accuracy.csv")) == len(table)
+    assert sorted(table["epoch"].unique()) == [1, 2] and (table["modality"] == "tactile").all()
+    counts = table.groupby("setting")[["train_images", "real_images", "generated_images"]].first()
+    assert counts.loc["real"].tolist() == [18, 18, 0]
+    assert counts.loc["real+generated"].tolist() == [27, 18, 9]
+    assert counts.loc["low-data real"].tolist() == [6, 6, 0]  # round(0.34 * 6) = 2 per class
+    assert counts.loc["low-data real+generated"].tolist() == [15, 6, 9]
+    real = table["setting"] == "real"
+    assert table.loc[real, "gan_test_accuracy"].notna().all() and table.loc[~real, "gan_test_accuracy"].isna().all()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "ok" and summary["classes"] == list(CLASSES) and summary["direction"] == "v2t"
+    assert summary["counts"]["generated_test"] == 6 and summary["counts"]["low_data_real_train"] == {"0": 6, "1": 6}
+    assert set(summary["settings"]) == set(SETTINGS) and len(summary["settings"]["real"]["epoch_mean"]) == 2
+    assert 0 <= summary["gan_test"]["final_mean"] <= 1
+    assert (out / "curves.png").stat().st_size > 0
+
+
+def test_stage_refuses_a_generated_training_image_from_a_test_input(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    splits = fake_layout(tmp_path)
+    table_path = tmp_path / "data/generated/t2v/generated.parquet"
+    table = pd.read_parquet(table_path)
+    test_tile = splits[(splits["modality"] == "tactile") & (splits["split"] == "test")]["path"].iloc[0]
+    table.loc[table.index[table["split"] == "train"][0], "input_path"] = test_tile
+    table.to_parquet(table_path)
+    with pytest.raises(ValueError, match="split leak: 1 generated 'train' image"):
+        run_classify(classify_params(), "visual", "data/pairs", "data/generated", "out/visual", progress=False)
+    assert not (tmp_path / "out/visual").exists()
+
+
+def test_stage_without_generated_training_images_skips_those_settings_and_uses_weights(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    fake_layout(tmp_path, generated_train=0)
+    torch.save(make_classifier(7, TINY, 0).state_dict(), tmp_path / "start.pt")
+    params = classify_params(seeds=[0], epochs=1, weights="start.pt", retrain_layers=1)
+    summary = run_classify(params, "visual", "data/pairs", "data/generated", "out/visual", progress=False)
+    table = pd.read_parquet(tmp_path / "out/visual/accuracy.parquet")
+    assert sorted(table["setting"].unique()) == ["low-data real", "real"]
+    assert set(summary["skipped"]) == {"real+generated", "low-data real+generated"}
+    assert summary["weights"] == "start.pt"
+    params["classify"]["weights"] = "missing.pt"
+    with pytest.raises(ValueError, match="missing.pt: weights file not found"):
+        run_classify(params, "visual", "data/pairs", "data/generated", "out/visual", progress=False)
+
+
+def test_stage_with_one_class_reports_not_applicable(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    fake_layout(tmp_path, classes=("felt",))
+    summary = run_classify(classify_params(), "visual", "data/pairs", "data/generated", "out/visual", progress=False)
+    assert summary["status"] == "not applicable: classification needs at least 2 classes, the data has 1 (felt)"
+    table = pd.read_parquet(tmp_path / "out/visual/accuracy.parquet")
+    assert table.empty and list(table.columns) == list(ACCURACY_COLUMNS)
+    assert json.loads((tmp_path / "out/visual/summary.json").read_text())["status"] == summary["status"]
+    assert "warning" in capsys.readouterr().out
+    assert (tmp_path / "out/visual/curves.png").is_file()
