@@ -130,14 +130,37 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    import traceback
+
+    from .imageio import describe_os_error, display_path
+
+    def fail(message: str, code: int = 2) -> int:
+        print(f"vtgen {args.stage}: error: {message}", file=sys.stderr)
+        return code
+
     try:
-        params = load_params(args.params) if args.params else None
+        try:
+            params = load_params(args.params) if args.params else None
+        except UnicodeDecodeError as exc:
+            raise ParamsError(f"{args.params}: not UTF-8 text ({exc.reason} at byte {exc.start})") from exc
         args.func(args, params)
-    except (ParamsError, ValueError, OSError, RuntimeError) as exc:
+    except KeyboardInterrupt:
+        print(f"vtgen {args.stage}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - every failure ends in one line; VTGEN_DEBUG=1 shows the traceback
         if os.environ.get("VTGEN_DEBUG"):
             raise
-        print(f"vtgen {args.stage}: error: {exc}", file=sys.stderr)
-        return 2
+        # bad input, bad configuration, a full disk or an unwritable folder: exit code 2
+        if isinstance(exc, OSError):
+            return fail(describe_os_error(exc))
+        if isinstance(exc, MemoryError):
+            return fail("out of memory; use a machine with more memory or smaller settings (see README: Scaling out)")
+        if isinstance(exc, (ValueError, RuntimeError)):
+            return fail(display_path(str(exc)))
+        # anything else is a bug in vtgen: still one line, saying where it happened
+        frame = traceback.extract_tb(exc.__traceback__)[-1]
+        return fail(f"unexpected {type(exc).__name__}: {display_path(str(exc))} (at {Path(frame.filename).name}:"
+                    f"{frame.lineno} in {frame.name}); set VTGEN_DEBUG=1 for the traceback and please report it", code=1)
     return 0
 
 

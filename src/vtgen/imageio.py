@@ -7,10 +7,10 @@ Every image enters the pipeline through :func:`read_rgb8`, so the conversion rul
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import os
 import shutil
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from concurrent.futures import ThreadPoolExecutor
@@ -21,10 +21,33 @@ import numpy as np
 from PIL import Image
 
 IMAGE_EXTENSIONS = frozenset({".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp"})
+# The file formats the pipeline decodes, and the one each extension promises. Pillow reads
+# many more (TGA, ICO, PCX, ...), but some of those accept almost any bytes, so random data
+# named .png would be "decoded" as noise; only these are tried.
+DECODED_FORMATS = ("PNG", "JPEG", "BMP", "TIFF", "WEBP")  # JPEG includes multi-picture (MPO) files
+_FORMAT_OF_EXTENSION = {".jpg": "JPEG", ".jpeg": "JPEG", ".png": "PNG", ".bmp": "BMP", ".tif": "TIFF",
+                        ".tiff": "TIFF", ".webp": "WEBP"}
+# Largest image decoded, in pixels (Pillow's own decompression-bomb threshold, about 9459 x 9459).
+# Checked explicitly after the header is read, so the limit holds in every thread.
+MAX_PIXELS = 89_478_485
 
 
 class ImageError(ValueError):
     """A file cannot be used as an image; the message says why."""
+
+
+def display_path(path: str | Path) -> str:
+    """``path`` as printable UTF-8 text: undecodable bytes of a file name appear as ``\\xff`` escapes."""
+    return os.fsencode(path).decode("utf-8", "backslashreplace")
+
+
+def is_utf8_path(path: str | Path) -> bool:
+    """True when the name can be stored as UTF-8 text (in a table, a CSV, a log line) and read back."""
+    try:
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
 
 
 def file_md5(path: str | Path, chunk: int = 1 << 20) -> str:
@@ -51,46 +74,96 @@ def read_rgb8(path: str | Path) -> DecodedImage:
 
     Returns the array with a note describing any conversion:
     grayscale is replicated to three channels, 16-bit samples are scaled by 255/65535,
-    palette images are expanded, alpha is dropped. Raises ImageError for a file that is
-    empty, not an image, truncated or otherwise undecodable.
+    palette images are expanded, alpha is dropped; a file whose content is another format than
+    its extension says (a JPEG named .png) is read and noted. Raises ImageError for a file that
+    is empty, not an image, truncated, too large (over MAX_PIXELS) or otherwise undecodable,
+    whatever the decoder raised.
     """
     path = Path(path)
     try:
-        if path.stat().st_size == 0:
-            raise ImageError("empty file (0 bytes)")
-        with warnings.catch_warnings():
-            warnings.simplefilter("error", Image.DecompressionBombWarning)
-            with Image.open(path) as image:
-                mode = image.mode
-                tile_modes = [str(t.args) for t in getattr(image, "tile", []) if t.args]
-                image.load()
-                channels = len(image.getbands())
-                array, note = _to_rgb8(image, mode, tile_modes)
+        size = path.stat().st_size
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise ImageError("symbolic link loop (too many levels of symbolic links)") from exc
+        if exc.errno == errno.ENOENT and path.is_symlink():
+            raise ImageError(f"broken symbolic link to {display_path(os.readlink(path))}") from exc
+        raise ImageError(f"cannot read file: {exc.strerror or exc}") from exc
+    if size == 0:
+        raise ImageError("empty file (0 bytes)")
+    try:
+        with Image.open(path, formats=DECODED_FORMATS) as image:
+            width, height = image.size
+            if width < 1 or height < 1:
+                raise ImageError(f"image has no pixels ({width}x{height})")
+            if width * height > MAX_PIXELS:
+                raise ImageError(f"image too large to decode safely: {width}x{height} pixels "
+                                 f"(limit {MAX_PIXELS:,} pixels)")
+            mode, file_format = image.mode, image.format
+            tile_modes = [str(t.args) for t in getattr(image, "tile", []) if t.args]
+            image.load()
+            channels = len(image.getbands())
+            array, note = _to_rgb8(image, mode, tile_modes, path)
     except ImageError:
         raise
-    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as exc:
+    except Image.DecompressionBombError as exc:
         raise ImageError(f"image too large to decode safely: {exc}") from exc
+    except MemoryError as exc:
+        raise ImageError("image too large: out of memory while decoding it") from exc
+    except Image.UnidentifiedImageError as exc:
+        raise ImageError(f"not a decodable image: not {', '.join(DECODED_FORMATS[:-1])} or "
+                         f"{DECODED_FORMATS[-1]} data") from exc
     except OSError as exc:
-        text = str(exc)
+        text = _without_path(str(exc), path)
         if "truncated" in text.lower():
             raise ImageError(f"truncated image: {text}") from exc
         raise ImageError(f"not a decodable image: {text}") from exc
-    except (ValueError, SyntaxError) as exc:
-        raise ImageError(f"not a decodable image: {exc}") from exc
+    except Exception as exc:  # noqa: BLE001 - a corrupt file can make any decoder step fail; it is the file's fault
+        raise ImageError(f"not a decodable image ({type(exc).__name__}: {_without_path(str(exc), path)})") from exc
     if array.shape[0] < 1 or array.shape[1] < 1:
         raise ImageError(f"image has no pixels ({array.shape[1]}x{array.shape[0]})")
+    expected = _FORMAT_OF_EXTENSION.get(path.suffix.lower())
+    actual = "JPEG" if file_format == "MPO" else file_format
+    if expected and actual != expected:
+        note = "; ".join(n for n in (f"file holds {actual} data but is named {path.suffix}", note) if n)
     wide = mode.startswith("I;16") or mode == "I" or any(";16" in m for m in tile_modes)
     return DecodedImage(array, note, channels, 16 if wide else 8)
 
 
-def _to_rgb8(image: Image.Image, mode: str, tile_modes: list[str]) -> tuple[np.ndarray, str]:
+def _without_path(text: str, path: Path) -> str:
+    """Decoder messages often repeat the file name; the caller records the path already."""
+    for form in (repr(str(path)), str(path)):
+        text = text.replace(form, "the file")
+    return display_path(text)
+
+
+def _deep_colour(path: Path, shape: tuple[int, int]) -> np.ndarray | None:
+    """The 16-bit colour samples of ``path`` as RGB uint16, or None. Pillow keeps only the high
+    byte of 16-bit colour images, so OpenCV decodes them (from bytes: any file name works)."""
+    decoded = cv2.imdecode(np.fromfile(path, np.uint8), cv2.IMREAD_UNCHANGED)
+    if decoded is None or decoded.dtype != np.uint16 or decoded.ndim != 3 or decoded.shape[:2] != shape:
+        return None
+    return decoded[:, :, 2::-1] if decoded.shape[2] >= 3 else None
+
+
+def _to_rgb8(image: Image.Image, mode: str, tile_modes: list[str], path: Path) -> tuple[np.ndarray, str]:
     notes = []
-    if any(";16" in m for m in tile_modes) and mode == "RGB":
-        notes.append("16-bit RGB scaled to 8-bit")
+    if any(";16" in m for m in tile_modes) and not mode.startswith("I"):
+        deep = _deep_colour(path, (image.height, image.width)) if mode in ("RGB", "RGBA") else None
+        if deep is not None:
+            notes.append(f"16-bit {mode} scaled to 8-bit" + (", alpha dropped" if mode == "RGBA" else ""))
+            return np.clip(np.rint(deep * (255.0 / 65535.0)), 0, 255).astype(np.uint8), "; ".join(notes)
+        notes.append(f"16-bit {mode} reduced to 8-bit (high byte)")
     if mode in ("I;16", "I;16B", "I;16L", "I;16N", "I"):
         data = np.asarray(image, dtype=np.float64)
+        if mode == "I" and not any("16" in m for m in tile_modes):
+            # 32-bit integer samples: usable only when they hold 16-bit values
+            if data.size and (data.min() < 0 or data.max() > 65535):
+                raise ImageError(f"32-bit integer image with values in [{data.min():.0f}, {data.max():.0f}]: "
+                                 f"its value range is unknown")
+            notes.append("32-bit integer grayscale (values within 16 bits) scaled to 8-bit and replicated to RGB")
+        else:
+            notes.append(f"16-bit grayscale ({mode}) scaled to 8-bit and replicated to RGB")
         data = np.clip(np.rint(data * 255.0 / 65535.0), 0, 255).astype(np.uint8)
-        notes.append(f"16-bit grayscale ({mode}) scaled to 8-bit and replicated to RGB")
         return np.repeat(data[:, :, None], 3, axis=2), "; ".join(notes)
     if mode == "F":
         raise ImageError("floating-point image (mode F): its value range is unknown")
@@ -136,31 +209,113 @@ def write_png(path: str | Path, rgb: np.ndarray) -> None:
     Image.fromarray(rgb, "RGB").save(path, compress_level=1)
 
 
+# errno values that mean "this cannot be written here", whatever the stage was doing
+_NO_SPACE = {errno.ENOSPC, errno.EDQUOT}
+_NOT_WRITABLE = {errno.EACCES, errno.EPERM, errno.EROFS}
+
+
+class OutputDirError(OSError):
+    """The output folder cannot be created or replaced; the message names it and says why."""
+
+
+def check_output_dir(out_dir: str | Path) -> Path:
+    """Make sure ``out_dir`` can be written (creating its parent), or raise OutputDirError saying why.
+
+    Stages that work long before they write call this first, so a bad ``--out`` fails at once.
+    """
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise OutputDirError(errno.ENOTDIR, "exists and is a file, not an output folder", str(out_dir))
+    for parent in (out_dir.parent, *out_dir.parent.parents):
+        if parent.exists() and not parent.is_dir():
+            raise OutputDirError(errno.ENOTDIR, f"cannot create the output folder: {display_path(parent)} is a file",
+                                 str(out_dir))
+        if parent.is_dir():
+            break
+    try:
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputDirError(exc.errno, f"cannot create the output folder's parent: {describe_os_error(exc)}",
+                             str(out_dir)) from exc
+    if not os.access(out_dir.parent, os.W_OK | os.X_OK):
+        raise OutputDirError(errno.EACCES, f"cannot write the output folder: {display_path(out_dir.parent)} "
+                                           f"is not writable", str(out_dir))
+    return out_dir
+
+
 @contextlib.contextmanager
 def atomic_output_dir(out_dir: str | Path) -> Iterator[Path]:
     """Yield a temporary sibling of ``out_dir``; on success it replaces ``out_dir`` in one rename.
 
     A stage killed part-way leaves the previous ``out_dir`` (or none) and a ``.tmp`` sibling
-    that the next run removes; never a half-written ``out_dir``.
+    that the next run removes; never a half-written ``out_dir``. The folder is checked before
+    any work starts (:func:`check_output_dir`). A write error without a file name (a full disk
+    seen by a writer that does not know its path) is given ``out_dir`` as its file name.
     """
-    out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    if not os.access(out_dir.parent, os.W_OK):
-        raise PermissionError(f"{out_dir.parent}: output directory is not writable")
+    out_dir = check_output_dir(out_dir)
     tmp = out_dir.with_name(f".{out_dir.name}.tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
+    _remove(tmp)  # left by a run that was killed
     tmp.mkdir()
     try:
         yield tmp
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+    except BaseException as exc:
+        shutil.rmtree(tmp, ignore_errors=True)  # frees the space a full disk needs back
+        if isinstance(exc, OSError) and exc.filename is None and exc.errno in _NO_SPACE | _NOT_WRITABLE:
+            exc.filename = str(out_dir)
         raise
     old = out_dir.with_name(f".{out_dir.name}.old")
-    shutil.rmtree(old, ignore_errors=True)
+    _remove(old)
     if out_dir.exists():
         out_dir.rename(old)
     tmp.rename(out_dir)
     shutil.rmtree(old, ignore_errors=True)
+
+
+def _remove(path: Path) -> None:
+    if path.is_symlink() or path.is_file():
+        path.unlink()
+    else:
+        shutil.rmtree(path, ignore_errors=True)
+
+
+def describe_os_error(exc: OSError) -> str:
+    """One line saying what happened and where, for an OSError that reached the command line.
+
+    A full disk, a folder that cannot be written and a path through a file get a sentence that
+    names the path and what to do; anything else is ``<path>: <system message>``.
+    """
+    where = display_path(exc.filename) if exc.filename is not None else None
+    if isinstance(exc, OutputDirError):
+        return f"{where}: {exc.strerror}"
+    if exc.errno in _NO_SPACE:
+        kind = "disk quota exceeded" if exc.errno == errno.EDQUOT else "no space left on device (disk full)"
+        place = f" while writing {where}" if where else ""
+        return f"{kind}{place}; free some space or write to another disk, then run again"
+    if exc.errno == errno.EROFS:
+        return f"{where or 'output'}: read-only file system; write the outputs to a writable disk"
+    if exc.errno in (errno.EACCES, errno.EPERM):
+        return f"{where or 'a file'}: permission denied; check the folder's permissions or choose another location"
+    if exc.errno == errno.ENOTDIR:
+        return f"{where}: a part of this path is a file, not a folder"
+    text = exc.strerror or str(exc)
+    return f"{where}: {text}" if where else display_path(text)
+
+
+def read_table(path: str | Path, needs: list[str], what: str):
+    """A parquet table written by an earlier stage, or a ValueError naming the file and what is wrong."""
+    import pandas as pd
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(errno.ENOENT, f"no such file ({what})", str(path))
+    try:
+        table = pd.read_parquet(path)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: not a readable parquet table ({what}): {exc}") from exc
+    missing = [c for c in needs if c not in table.columns]
+    if missing:
+        raise ValueError(f"{path}: missing column(s) {', '.join(missing)}; is this {what}?")
+    return table
 
 
 def labelled_sheet(rows: list[tuple[str, list[list[np.ndarray | None]]]], titles: list[str], per_group: int,

@@ -11,6 +11,13 @@ Three layouts are read (``dataset.source`` in params.yaml):
 
 Every file found ends up either in the manifest (possibly converted, with a note) or in the
 quarantine table with its reason; the counts in, kept and quarantined are printed and recorded.
+Names that are not valid UTF-8 cannot be stored in the tables, so such files and folders are
+quarantined (shown with ``\\xff`` escapes) rather than read. Symbolic links to files are read
+through; symbolic links to folders inside a modality folder are quarantined, not followed, since
+one can loop back to its own parent.
+
+Memory: the readers list file names only; decoding runs on ``ingest.workers`` threads, one image
+per thread at a time, and keeps one metadata row per image, never the pixels.
 """
 
 from __future__ import annotations
@@ -23,7 +30,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from .imageio import IMAGE_EXTENSIONS, ImageError, atomic_output_dir, file_md5, map_images, read_rgb8
+from .imageio import (IMAGE_EXTENSIONS, ImageError, atomic_output_dir, check_output_dir, display_path, file_md5, is_utf8_path,
+                      map_images, read_rgb8)
 
 MODALITIES = ("visual", "tactile")
 MANIFEST_COLUMNS = [
@@ -54,12 +62,33 @@ class Candidate:
     note: str = ""
 
 
+_NOT_UTF8 = "name is not valid UTF-8 text, so it cannot be recorded; rename it to use it"
+_LINKED_FOLDER = "symbolic link to a folder: not followed (it could loop); link the files or copy the folder instead"
+
+
 def _quarantine(path, cls, modality, reason) -> dict:
-    return {"path": str(path), "class": cls, "modality": modality, "reason": reason}
+    return {"path": display_path(path), "class": display_path(cls), "modality": modality, "reason": reason}
 
 
 def _is_image_name(path: Path) -> bool:
     return path.suffix.lower() in IMAGE_EXTENSIONS
+
+
+def _files_below(folder: Path, cls: str, modality: str, quarantined: list[dict]) -> list[Path]:
+    """Files below ``folder`` in sorted order. Folders reached through a symbolic link and
+    names that are not UTF-8 go to ``quarantined`` instead (pathlib's rglob does not descend
+    into linked folders, so a link loop cannot trap the walk)."""
+    files = []
+    for path in sorted(folder.rglob("*")):
+        if path.is_symlink() and path.is_dir():
+            quarantined.append(_quarantine(path, cls, modality, _LINKED_FOLDER))
+        elif path.is_dir():
+            continue
+        elif not is_utf8_path(path):
+            quarantined.append(_quarantine(path, cls, modality, f"file {_NOT_UTF8}"))
+        else:
+            files.append(path)
+    return files
 
 
 def read_generic(root: Path) -> tuple[list[Candidate], list[dict]]:
@@ -71,14 +100,18 @@ def read_generic(root: Path) -> tuple[list[Candidate], list[dict]]:
                 quarantined.append(_quarantine(class_dir, "", "", "image at the top level; expected <class>/<modality>/ folders"))
             continue
         cls = class_dir.name
+        if not is_utf8_path(cls):
+            quarantined.append(_quarantine(class_dir, "", "", f"class folder {_NOT_UTF8}"))
+            continue
         found_any = False
         for entry in sorted(class_dir.iterdir()):
             if entry.name not in MODALITIES:
                 quarantined.append(_quarantine(entry, cls, "", f"not a modality folder (expected {' or '.join(MODALITIES)})"))
                 continue
-            for path in sorted(entry.rglob("*")):
-                if path.is_dir():
-                    continue
+            if not entry.is_dir():
+                quarantined.append(_quarantine(entry, cls, entry.name, "named like a modality folder but is not a folder"))
+                continue
+            for path in _files_below(entry, cls, entry.name, quarantined):
                 if not _is_image_name(path):
                     quarantined.append(_quarantine(path, cls, entry.name, f"not an image file (extension '{path.suffix}')"))
                     continue
@@ -113,7 +146,7 @@ def read_vitac(root: Path) -> tuple[list[Candidate], list[dict]]:
         cls = match["cloth"]
         modality = "tactile" if match["mod"] == "t" else "visual"
         split = "test" if match["test"] else "train"
-        files = sorted(p for p in folder.rglob("*") if not p.is_dir())
+        files = _files_below(folder, cls, modality, quarantined)
         if not any(_is_image_name(p) for p in files):
             quarantined.append(_quarantine(folder, cls, modality, "empty folder: no image files"))
         for path in files:
@@ -139,12 +172,15 @@ def _inspect(candidate: Candidate) -> dict:
     """Decode one candidate fully; return a manifest row or a quarantine row (key 'reason')."""
     try:
         image = read_rgb8(candidate.path)
+        md5 = file_md5(candidate.path)
     except ImageError as exc:
         return _quarantine(candidate.path, candidate.cls, candidate.modality, str(exc))
+    except OSError as exc:  # gone or unreadable between decoding and hashing
+        return _quarantine(candidate.path, candidate.cls, candidate.modality, f"cannot read file: {exc.strerror or exc}")
     row = asdict(candidate)
     row["class"] = row.pop("cls")
     row["note"] = "; ".join(n for n in (candidate.note, image.note) if n)
-    row.update(md5=file_md5(candidate.path), width=image.rgb.shape[1], height=image.rgb.shape[0],
+    row.update(md5=md5, width=image.rgb.shape[1], height=image.rgb.shape[0],
                channels=image.channels, bit_depth=image.bit_depth)
     return row
 
@@ -159,7 +195,10 @@ def ingest_dataset(root: str | Path, source: str, workers: int = 2, progress: bo
     if source not in READERS:
         raise IngestError(f"unknown dataset source '{source}' (known: {', '.join(READERS)})")
     if not root.is_dir():
-        raise IngestError(f"{root}: dataset folder does not exist")
+        raise IngestError(f"{display_path(root)}: dataset folder does not exist")
+    if not is_utf8_path(root.resolve()):
+        raise IngestError(f"{display_path(root.resolve())}: the dataset folder's path is not valid UTF-8 text, "
+                          f"so its files cannot be recorded; rename it")
     started = time.perf_counter()
     candidates, quarantined = READERS[source](root)
     entries_in = len(candidates) + len(quarantined)
@@ -185,7 +224,7 @@ def ingest_dataset(root: str | Path, source: str, workers: int = 2, progress: bo
         "synthetic": source == "synthetic",
         "entries_in": entries_in,  # image files found plus entries the layout rejected; = kept + quarantined
         # documentation and metadata beside the class folders (e.g. SOURCE.md, dataset.json) are not data
-        "ignored_top_level_files": sorted(p.name for p in root.iterdir() if p.is_file() and not _is_image_name(p)),
+        "ignored_top_level_files": sorted(display_path(p.name) for p in root.iterdir() if not p.is_dir() and not _is_image_name(p)),
         "images_decoded": len(candidates),
         "kept": len(manifest),
         "with_note": int((manifest["note"] != "").sum()),
@@ -206,6 +245,7 @@ def ingest_dataset(root: str | Path, source: str, workers: int = 2, progress: bo
 
 def run_ingest(root: str | Path, source: str, out_dir: str | Path, workers: int = 2) -> dict:
     """Stage entry: write manifest.parquet, quarantine.parquet/.csv and summary.json into ``out_dir``."""
+    check_output_dir(out_dir)  # before decoding the whole dataset, not after
     manifest, quarantine, summary = ingest_dataset(root, source, workers)
     with atomic_output_dir(out_dir) as tmp:
         manifest.to_parquet(tmp / "manifest.parquet", index=False)

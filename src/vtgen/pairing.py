@@ -19,10 +19,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .imageio import atomic_output_dir
+from .imageio import atomic_output_dir, read_table
 
 DIRECTIONS = {"v2t": ("visual", "tactile"), "t2v": ("tactile", "visual")}
 SPLITS = ("train", "val", "test")
+TILE_NEEDS = ["tile_path", "class", "modality", "split", "source", "pair_key", "tile_index",
+              "box_x", "box_y", "box_w", "box_h"]
 PAIR_COLUMNS = [
     "direction", "split", "class", "input_path", "target_path", "input_source", "target_source", "aligned",
 ]
@@ -110,7 +112,9 @@ def build_pairs(tiles: pd.DataFrame, direction: str, seed: int) -> tuple[pd.Data
 def run_pairing(tiles_path: str | Path, pairing: dict, out_dir: str | Path) -> dict:
     """Stage entry: write splits.parquet, v2t.parquet, t2v.parquet and summary.json into ``out_dir``."""
     tiles_path = Path(tiles_path)
-    tiles = pd.read_parquet(tiles_path)
+    tiles = read_table(tiles_path, TILE_NEEDS, "the roi stage's tiles.parquet")
+    if tiles.empty:
+        raise ValueError(f"{tiles_path}: no tiles to pair")
     tiles["path"] = [str(tiles_path.parent / "tiles" / p) for p in tiles["tile_path"]]
     tiles["split"], warnings = assign_splits(tiles, pairing["val_fraction"], pairing["test_fraction"], pairing["seed"])
     leaks = leaked_sources(tiles)

@@ -8,6 +8,11 @@ visual images the whole photo. Inside the region, ``roi.visual_crop`` cuts one c
 (``centre``) or a grid of squares (``tiles``) whose side is ``roi.crop_fraction`` of the
 region's shorter side; each crop is resized to ``roi.size``. The same crop rule applies to
 both modalities, so aligned data (equal regions) gives aligned tiles with equal boxes.
+
+An image too small for the centre crop (``crop_fraction`` of its shorter side is under one
+pixel) gives no tile; it is listed with the reason under ``skipped`` in ``summary.json``.
+Images are read, cut and written one per worker thread at a time; only the tile table is
+kept in memory.
 """
 
 from __future__ import annotations
@@ -19,9 +24,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .imageio import atomic_output_dir, labelled_sheet, map_images, read_rgb8, write_png
+from .imageio import ImageError, atomic_output_dir, labelled_sheet, map_images, read_rgb8, read_table, write_png
 from .roi import Box, centre_box, contact_box, cut_tile, remove_markers, tile_boxes
 
+MANIFEST_NEEDS = ["path", "class", "modality", "split", "source", "pair_key"]
 TILE_COLUMNS = [
     "tile_path", "image_path", "class", "modality", "split", "source", "pair_key", "tile_index",
     "box_x", "box_y", "box_w", "box_h",
@@ -53,9 +59,21 @@ def crop_boxes(region: Box, visual_crop: str, crop_fraction: float) -> list[Box]
     return [Box(region.x + b.x, region.y + b.y, b.w, b.h) for b in local]
 
 
-def _tile_one(args) -> list[dict]:
+def _too_small(region: Box, roi: dict) -> str:
+    """Why ``region`` cannot give a tile, or "" when it can."""
+    if roi["visual_crop"] == "centre" and int(roi["crop_fraction"] * min(region.w, region.h)) < 1:
+        return (f"image region {region.w}x{region.h} is too small for roi.crop_fraction {roi['crop_fraction']} "
+                f"(the crop would be under 1 pixel)")
+    return ""
+
+
+def _tile_one(args) -> list[dict] | str:
+    """Tile rows of one manifest image, or the reason it gives no tile."""
     index, row, roi, tiles_dir = args
-    image = read_rgb8(row["path"]).rgb
+    try:
+        image = read_rgb8(row["path"]).rgb
+    except ImageError as exc:
+        raise ImageError(f"{row['path']}: {exc} (has it changed since the ingest stage? rerun ingest)") from exc
     if row["modality"] == "tactile":
         if roi["remove_markers"]:
             image = remove_markers(image)
@@ -65,6 +83,8 @@ def _tile_one(args) -> list[dict]:
             raise ValueError(f"{row['path']}: {exc}") from exc
     else:
         region = Box(0, 0, image.shape[1], image.shape[0])
+    if reason := _too_small(region, roi):
+        return reason
     out = []
     folder = tiles_dir / row["modality"] / row["class"]
     folder.mkdir(parents=True, exist_ok=True)
@@ -81,11 +101,18 @@ def _tile_one(args) -> list[dict]:
 
 
 def cut_dataset_tiles(manifest: pd.DataFrame, roi: dict, tiles_dir: Path, workers: int = 2,
-                      progress: bool = True) -> pd.DataFrame:
-    """Cut all manifest images into ``tiles_dir``; return the tile table (``tile_path`` relative to it)."""
+                      progress: bool = True, skipped: list[dict] | None = None) -> pd.DataFrame:
+    """Cut all manifest images into ``tiles_dir``; return the tile table (``tile_path`` relative to it).
+
+    Images that give no tile are appended to ``skipped`` as ``{"path", "reason"}``.
+    """
     jobs = [(i, row, roi, Path(tiles_dir)) for i, row in enumerate(manifest.to_dict("records"))]
     rows = []
-    for tiles in map_images(_tile_one, jobs, len(jobs), workers, "roi", progress):
+    for job, tiles in zip(jobs, map_images(_tile_one, jobs, len(jobs), workers, "roi", progress)):
+        if isinstance(tiles, str):
+            if skipped is not None:
+                skipped.append({"path": job[1]["path"], "reason": tiles})
+            continue
         rows.extend(tiles)
     return pd.DataFrame(rows, columns=TILE_COLUMNS)
 
@@ -105,10 +132,15 @@ def tile_preview(tiles: pd.DataFrame, tiles_dir: Path, per_class: int = 4, side:
 
 def run_roi(manifest_path: str | Path, roi: dict, out_dir: str | Path, workers: int = 2) -> dict:
     """Stage entry: write ``tiles/`` and ``tiles.parquet`` (+ summary.json) into ``out_dir``."""
-    manifest = pd.read_parquet(manifest_path)
+    manifest = read_table(manifest_path, MANIFEST_NEEDS, "the ingest stage's manifest")
     started = time.perf_counter()
+    skipped: list[dict] = []
     with atomic_output_dir(out_dir) as tmp:
-        tiles = cut_dataset_tiles(manifest, roi, tmp / "tiles", workers)
+        tiles = cut_dataset_tiles(manifest, roi, tmp / "tiles", workers, skipped=skipped)
+        if tiles.empty:
+            reasons = sorted({s["reason"] for s in skipped})[:3]
+            raise ValueError(f"{manifest_path}: no tiles cut from its {len(manifest)} images"
+                             + (f" ({'; '.join(reasons)})" if reasons else ""))
         tiles.to_parquet(tmp / "tiles.parquet", index=False)
         write_png(tmp / "preview.png", tile_preview(tiles, tmp / "tiles"))
         seconds = time.perf_counter() - started
@@ -117,8 +149,12 @@ def run_roi(manifest_path: str | Path, roi: dict, out_dir: str | Path, workers: 
             "tiles_per_modality": tiles["modality"].value_counts().to_dict(),
             "seconds": round(seconds, 3),
             "images_per_second": round(len(manifest) / seconds, 1) if seconds > 0 else None,
+            "skipped": skipped,
         }
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"roi: {summary['images']} images -> {summary['tiles']} tiles of {roi['size']} px "
           f"({summary['images_per_second']} images/s)")
+    for item in skipped:
+        print(f"  warning: no tile from {item['path']}: {item['reason']}")
     return summary
+

@@ -1,0 +1,398 @@
+"""Faults: stages killed part-way, a full disk, unwritable folders, the DVC remote round trip, and
+the SLURM profile's plan.
+
+Tiny configurations (conftest.tiny_params) keep every run to seconds. The stage commands run in
+subprocesses where a real SIGKILL is the point, and in this process where a monkeypatched
+failure is (a full disk).
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+import yaml
+
+from conftest import ENV, REPO, make_project, run, tiny_params
+from vtgen import cli
+from vtgen.imageio import OutputDirError, atomic_output_dir, describe_os_error
+
+pytestmark = pytest.mark.e2e
+
+
+def snapshot(folder: Path) -> dict[str, str]:
+    """relative path -> md5 of every file below ``folder``."""
+    return {str(p.relative_to(folder)): hashlib.md5(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def stable(files: dict[str, str]) -> dict[str, str]:
+    """Leave out what records wall time or dates (summaries, dvclive logs) and checkpoint-format bytes."""
+    return {k: v for k, v in files.items()
+            if Path(k).name not in ("summary.json", "train.json", "generator.pt") and not k.startswith("dvclive")}
+
+
+def same_weights(a: Path, b: Path) -> bool:
+    first, second = (torch.load(p, map_location="cpu", weights_only=False)["state_dict"] for p in (a, b))
+    return first.keys() == second.keys() and all(torch.equal(first[k], second[k]) for k in first)
+
+
+def cli_error(argv: list[str], capsys) -> tuple[int, str]:
+    code = cli.main(argv)
+    return code, capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------
+# One DVC project with the data stages, V2T training and V2T generation done: the round trip
+# through a DVC remote, then each stage killed part-way and run again.
+
+@pytest.fixture(scope="module")
+def dvc_project(tmp_path_factory) -> Path:
+    # render in this process (workers 1) so that a test can kill it between two image writes
+    project = make_project(tmp_path_factory.mktemp("dvc") / "project", tiny_params(synthetic={"workers": 1}))
+    run(["git", "init", "-q"], project)
+    run(["dvc", "init", "-q"], project)
+    run(["dvc", "config", "core.analytics", "false"], project)
+    run(["git", "add", "-A"], project)
+    run(["git", "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "project"], project)
+    run(["dvc", "repro", "generate@v2t"], project)
+    return project
+
+
+def test_dvc_push_then_pull_into_an_empty_workspace_and_cache_restores_every_output(dvc_project, tmp_path):
+    project = dvc_project
+    lock = yaml.safe_load((project / "dvc.lock").read_text())["stages"]
+    outs = sorted(out["path"] for stage in lock.values() for out in stage["outs"])
+    assert outs == ["data/generated/v2t", "data/ingest", "data/pairs", "data/raw/synthetic", "data/roi", "models/v2t/all"]
+    before = {out: snapshot(project / out) for out in outs}
+    status = ["dvc", "status", "generate@v2t", "--with-deps", "--json"]
+    assert json.loads(run(status, project).stdout) == {}
+
+    run(["dvc", "remote", "add", "-d", "local", str(tmp_path / "remote")], project)
+    run(["dvc", "push", "generate@v2t", "--with-deps"], project)
+    assert json.loads(run(["dvc", "status", "--cloud", "--json"], project).stdout) == {}  # the remote has it all
+
+    for out in outs:
+        shutil.rmtree(project / out)
+    shutil.rmtree(project / ".dvc" / "cache")
+    gone = json.loads(run(status, project).stdout)
+    assert set(gone) == {"render", "ingest", "roi", "pairs", "train@v2t-all", "generate@v2t"}  # DVC sees them missing
+
+    run(["dvc", "pull", "generate@v2t", "--with-deps"], project)
+    assert json.loads(run(status, project).stdout) == {}
+    assert {out: snapshot(project / out) for out in outs} == before
+
+
+# A small driver: run a vtgen command, and SIGKILL the process itself right after the N-th call of
+# one function (an image write, a table write, the rename that replaces the old output). No
+# cleanup runs, exactly as when the machine or the scheduler kills the job.
+KILLER = """
+import importlib, os, signal, sys, threading
+target, at = sys.argv[1], int(sys.argv[2])
+module, _, attribute = target.partition(":")
+owner = importlib.import_module(module)
+*parents, name = attribute.split(".")
+for part in parents:
+    owner = getattr(owner, part)
+original, calls, lock = getattr(owner, name), [0], threading.Lock()
+def wrapper(*args, **kwargs):
+    result = original(*args, **kwargs)
+    with lock:
+        calls[0] += 1
+        if calls[0] == at:
+            os.kill(os.getpid(), signal.SIGKILL)
+    return result
+setattr(owner, name, wrapper)
+from vtgen import cli
+sys.exit(cli.main(sys.argv[3:]))
+"""
+
+IMAGE_WRITE, TABLE_WRITE, RENAME = "PIL.Image:Image.save", "pandas:DataFrame.to_parquet", "pathlib:Path.rename"
+KILLS = {
+    # stage: (command, output folder, function, the call after which the process is killed)
+    "render": ("render --params params.yaml --out data/raw/synthetic", "data/raw/synthetic", IMAGE_WRITE, 5),
+    "ingest": ("ingest --params params.yaml --out data/ingest", "data/ingest", TABLE_WRITE, 2),
+    "roi": ("roi --params params.yaml --manifest data/ingest/manifest.parquet --out data/roi", "data/roi", IMAGE_WRITE, 7),
+    "pairs": ("pairs --params params.yaml --tiles data/roi/tiles.parquet --out data/pairs", "data/pairs", RENAME, 1),
+    "train": ("train --params params.yaml --direction v2t --scope all --pairs data/pairs --out models/v2t/all",
+              "models/v2t/all", RENAME, 1),
+    "generate": ("generate --params params.yaml --direction v2t --pairs data/pairs --models models/v2t "
+                 "--out data/generated/v2t", "data/generated/v2t", IMAGE_WRITE, 3),
+}
+
+
+@pytest.mark.parametrize("stage", list(KILLS))
+def test_a_stage_killed_part_way_leaves_its_previous_output_or_none_and_reruns(dvc_project, stage, monkeypatch, tmp_path):
+    project = dvc_project
+    command, out, target, at = KILLS[stage]
+    out_dir = project / out
+    previous = snapshot(out_dir)
+    if stage == "train":
+        shutil.copy(out_dir / "generator.pt", tmp_path / "generator_before.pt")
+    killed = subprocess.run([sys.executable, "-c", KILLER, target, str(at), *command.split()], cwd=project, env=ENV,
+                            capture_output=True, text=True)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr[-2000:]
+
+    tmp, old = out_dir.with_name(f".{out_dir.name}.tmp"), out_dir.with_name(f".{out_dir.name}.old")
+    if target == RENAME:  # killed between moving the old output aside and moving the new one in: no output
+        assert not out_dir.exists() and snapshot(old) == previous
+    else:  # killed while writing: the previous output is untouched, the partial one is in the temporary folder
+        assert snapshot(out_dir) == previous
+        assert tmp.is_dir() and snapshot(tmp) != previous
+
+    monkeypatch.chdir(project)
+    assert cli.main(command.split()) == 0
+    again = snapshot(out_dir)
+    assert stable(again) == stable(previous) and again.keys() == previous.keys()
+    if stage == "train":
+        assert same_weights(out_dir / "generator.pt", tmp_path / "generator_before.pt")
+    assert not tmp.exists() and not old.exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# Training killed for real by SIGKILL under Snakemake; the next `snakemake --cores 2` resumes it
+
+def test_training_killed_mid_run_resumes_under_snakemake_to_the_same_weights(tmp_path):
+    params = tiny_params()
+    params["presets"]["fast"]["iterations"] = 60
+    params["translation"]["checkpoint_every"] = 10
+    project = make_project(tmp_path / "project", params)
+    run(["snakemake", "--cores", "2", "data/pairs"], project)
+    # the reference: the same training, uninterrupted, with its own checkpoint folder
+    run(["vtgen", "train", "--params", "params.yaml", "--direction", "v2t", "--scope", "all", "--pairs", "data/pairs",
+         "--out", str(tmp_path / "reference"), "--checkpoints", str(tmp_path / "reference_checkpoints")], project)
+
+    checkpoint = project / "checkpoints/v2t/all/last.pt"
+    snakemake = subprocess.Popen(["snakemake", "--cores", "2", "data/generated/v2t"], cwd=project, env=ENV,
+                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    import psutil
+
+    deadline = time.monotonic() + 300
+    while not checkpoint.exists():
+        if snakemake.poll() is not None or time.monotonic() > deadline:
+            snakemake.kill()
+            pytest.fail(f"no checkpoint appeared while Snakemake ran:\n{snakemake.communicate()[0][-3000:]}")
+        time.sleep(0.02)
+    trainers = [p for p in psutil.Process(snakemake.pid).children(recursive=True)
+                if "train" in p.cmdline() and any(part.endswith("vtgen") for part in p.cmdline())]
+    assert len(trainers) == 1, [p.cmdline() for p in psutil.Process(snakemake.pid).children(recursive=True)]
+    os.kill(trainers[0].pid, signal.SIGKILL)
+    log = snakemake.communicate(timeout=120)[0]
+    assert snakemake.returncode != 0, log[-3000:]
+
+    step = torch.load(checkpoint, weights_only=False)["step"]
+    assert 0 < step < 60, f"killed at step {step}: too late to test a resume"
+    assert not (project / "models/v2t/all").exists()  # no half-written model folder
+    assert not (project / "data/generated/v2t").exists()
+
+    rerun = run(["snakemake", "--cores", "2", "data/generated/v2t"], project)
+    assert f"resuming from step {step}" in rerun.stdout + rerun.stderr
+    summary = json.loads((project / "models/v2t/all/train.json").read_text())
+    assert summary["resumed_from_step"] == step and summary["steps"] == 60
+    assert same_weights(project / "models/v2t/all/generator.pt", tmp_path / "reference/generator.pt")
+    assert (project / "data/generated/v2t/generated.parquet").is_file()
+
+
+# ---------------------------------------------------------------------------------------------
+# A full disk and folders that cannot be written: one line that says what and where
+
+def no_space(*args, **kwargs):
+    """What a write raises on a full disk: errno 28 and no file name (checked against /dev/full:
+    Pillow, pyarrow and plain file writes all raise it this way)."""
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+@pytest.mark.parametrize("stage, patch", [("ingest", "pandas.DataFrame.to_parquet"), ("roi", "PIL.Image.Image.save"),
+                                          ("pairs", "pandas.DataFrame.to_parquet")])
+def test_a_full_disk_stops_a_stage_with_one_line_naming_the_output(dvc_project, tmp_path, monkeypatch, capsys,
+                                                                  stage, patch):
+    monkeypatch.chdir(dvc_project)
+    monkeypatch.setattr(patch, no_space)
+    inputs = {"ingest": [], "roi": ["--manifest", "data/ingest/manifest.parquet"],
+              "pairs": ["--tiles", "data/roi/tiles.parquet"]}[stage]
+    out = tmp_path / "out"
+    code, err = cli_error([stage, "--params", "params.yaml", *inputs, "--out", str(out)], capsys)
+    assert code == 2 and "Traceback" not in err
+    assert err.endswith("\n") and err.rstrip("\n").split("\n")[-1] == (  # above it: the progress bar, if any
+        f"vtgen {stage}: error: no space left on device (disk full) while writing {out}; "
+        f"free some space or write to another disk, then run again")
+    assert not out.exists() and not (tmp_path / ".out.tmp").exists()  # the partial output is removed, freeing space
+
+
+def test_a_full_disk_names_the_file_when_the_writer_knows_it(dvc_project, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(dvc_project)
+
+    def full(self, path, *args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+    monkeypatch.setattr("pandas.DataFrame.to_parquet", full)
+    code, err = cli_error(["ingest", "--params", "params.yaml", "--out", str(tmp_path / "out")], capsys)
+    assert code == 2 and f"while writing {tmp_path / '.out.tmp' / 'manifest.parquet'};" in err
+
+
+@pytest.mark.xfail(strict=True, reason="train.py writes checkpoints with torch.save, which reports a full disk as "
+                                       "RuntimeError('[enforce fail at inline_container.cc] ...') with no errno; "
+                                       "see the report for the proposed fix in train._save_atomic")
+def test_a_full_disk_while_checkpointing_is_reported_as_a_full_disk(dvc_project, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(dvc_project)
+    checkpoints = tmp_path / "checkpoints" / "v2t" / "all"
+    checkpoints.mkdir(parents=True)
+    (checkpoints / "last.pt.tmp").symlink_to("/dev/full")  # a real ENOSPC from the kernel
+    code, err = cli_error(["train", "--params", "params.yaml", "--direction", "v2t", "--scope", "all", "--pairs",
+                           "data/pairs", "--out", str(tmp_path / "model"), "--checkpoints", str(tmp_path / "checkpoints")],
+                          capsys)
+    assert code == 2 and "no space left on device" in err
+
+
+def test_an_output_under_a_file_or_onto_a_file_is_refused_before_any_work(dvc_project, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(dvc_project)
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder\n")
+    code, err = cli_error(["ingest", "--params", "params.yaml", "--out", str(blocker / "sub" / "ingest")], capsys)
+    assert (code, err) == (2, f"vtgen ingest: error: {blocker / 'sub' / 'ingest'}: cannot create the output folder: "
+                              f"{blocker} is a file\n")
+    code, err = cli_error(["pairs", "--params", "params.yaml", "--tiles", "data/roi/tiles.parquet", "--out",
+                           str(blocker)], capsys)
+    assert (code, err) == (2, f"vtgen pairs: error: {blocker}: exists and is a file, not an output folder\n")
+    assert blocker.read_text() == "not a folder\n"
+
+
+def test_an_unwritable_output_folder_is_refused_with_its_name(dvc_project, tmp_path):
+    """Permission bits do not stop root, so as root the command runs with CAP_DAC_OVERRIDE dropped (setpriv)."""
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o555)
+    command = [sys.executable, "-m", "vtgen", "ingest", "--params", "params.yaml", "--out", str(locked / "ingest")]
+    if os.geteuid() == 0:
+        if not shutil.which("setpriv"):
+            pytest.skip("running as root without setpriv: cannot take away root's permission override")
+        drop = "-dac_override,-dac_read_search"
+        command = ["setpriv", f"--inh-caps={drop}", f"--bounding-set={drop}", *command]
+    result = subprocess.run(command, cwd=dvc_project, env=ENV, capture_output=True, text=True)
+    locked.chmod(0o755)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr == (f"vtgen ingest: error: {locked / 'ingest'}: cannot write the output folder: "
+                             f"{locked} is not writable\n")
+    assert "ingest:" not in result.stdout  # refused before decoding the dataset
+    assert list(locked.iterdir()) == []
+
+
+@pytest.mark.parametrize("error, expected", [
+    (OSError(errno.EROFS, "Read-only file system", "/mnt/data/out"),
+     "/mnt/data/out: read-only file system; write the outputs to a writable disk"),
+    (OSError(errno.EDQUOT, "Disk quota exceeded"), "disk quota exceeded; free some space or write to another disk, "
+                                                   "then run again"),
+    (PermissionError(errno.EACCES, "Permission denied", "/srv/x"),
+     "/srv/x: permission denied; check the folder's permissions or choose another location"),
+    (OSError(errno.EIO, "Input/output error", b"/data/\xff.png"), "/data/\\xff.png: Input/output error"),
+])
+def test_os_errors_are_described_with_what_happened_and_where(error, expected):
+    assert describe_os_error(error) == expected
+
+
+def test_a_write_error_without_a_file_name_is_given_the_output_folder(tmp_path):
+    with pytest.raises(OSError) as caught:
+        with atomic_output_dir(tmp_path / "out"):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    assert caught.value.filename == str(tmp_path / "out")
+    with pytest.raises(OutputDirError, match="exists and is a file"):
+        (tmp_path / "file").write_text("x")
+        with atomic_output_dir(tmp_path / "file"):
+            pass
+
+
+# ---------------------------------------------------------------------------------------------
+# The SLURM profile: what a dry run plans, with the executor plugin installed
+
+def planned_jobs(text: str) -> list[dict]:
+    """Jobs of a `snakemake -n` listing: rule, wildcards, threads, resources, input."""
+    jobs = []
+    for line in text.splitlines():
+        if match := re.match(r"^(?:local)?rule (\w+):$", line):
+            jobs.append({"rule": match[1], "wildcards": {}, "threads": 1, "resources": {}, "input": []})
+        elif jobs and (match := re.match(r"^    (\w+): (.*)$", line)):
+            key, value = match.groups()
+            if key == "wildcards":
+                jobs[-1]["wildcards"] = dict(item.split("=", 1) for item in value.split(", "))
+            elif key == "threads":
+                jobs[-1]["threads"] = int(value)
+            elif key == "resources":
+                jobs[-1]["resources"] = dict(item.split("=", 1) for item in value.split(", "))
+            elif key == "input":
+                jobs[-1]["input"] = value.split(", ")
+    return jobs
+
+
+def test_slurm_profile_dry_run_plans_parallel_training_jobs_with_gpus(tmp_path):
+    params = tiny_params()
+    params["translation"]["scope"] = ["all", "denim", "felt"]
+    project = make_project(tmp_path / "project", params)
+    # --cores only lifts the dry run's default cap of 1 core per job (on the cluster there is none),
+    # so that the listing shows the threads each job will ask SLURM for
+    dry = run(["snakemake", "-n", "--workflow-profile", "workflow/profiles/slurm", "--cores", "64",
+               "data/generated/v2t", "data/generated/t2v"], project)
+    assert "workflow specific profile workflow/profiles/slurm" in dry.stderr
+    jobs = planned_jobs(dry.stdout)
+    by_rule: dict[str, list[dict]] = {}
+    for job in jobs:
+        by_rule.setdefault(job["rule"], []).append(job)
+    assert {rule: len(j) for rule, j in by_rule.items()} == {
+        "render": 1, "ingest": 1, "roi": 1, "pairs": 1, "train": 6, "generate": 2}
+
+    training = by_rule["train"]
+    assert {(j["wildcards"]["direction"], j["wildcards"]["scope"]) for j in training} == {
+        (d, s) for d in ("v2t", "t2v") for s in ("all", "denim", "felt")}
+    for job in training:
+        assert job["resources"]["gpu"] == "1" and job["resources"]["mem_mb"] == "64000"
+        assert job["resources"]["runtime"] == "720" and job["threads"] == params["translation"]["threads"]
+        assert not any(i.startswith("models/") for i in job["input"])  # no training job waits for another
+    for job in by_rule["generate"]:
+        assert (job["resources"]["gpu"], job["resources"]["mem_mb"], job["resources"]["runtime"]) == ("1", "16000", "120")
+        assert {i for i in job["input"] if i.startswith("models/")} == {
+            f"models/{job['wildcards']['direction']}/{s}" for s in ("all", "denim", "felt")}
+    expected = {"render": ("4000", "60", 2), "ingest": ("8000", "120", 2), "roi": ("8000", "240", 2),
+                "pairs": ("4000", "30", 1)}
+    for rule, (mem, runtime, threads) in expected.items():
+        (job,) = by_rule[rule]
+        assert (job["resources"]["mem_mb"], job["resources"]["runtime"], job["threads"]) == (mem, runtime, threads)
+        assert "gpu" not in job["resources"]
+
+    # what sbatch would be given for a training job, by the plugin's own functions
+    from snakemake_executor_plugin_slurm.submit_string import get_submit_command
+    from snakemake_executor_plugin_slurm.utils import set_gres_string
+
+    class Resources(dict):
+        __getattr__ = dict.get
+
+    job = SimpleNamespace(threads=2, resources=Resources(gpu=1, mem_mb=64000, runtime=720))
+    call = get_submit_command(job, {"run_uuid": "u", "slurm_logfile": "log", "comment_str": "train", "account": "",
+                                    "partition": "", "workdir": str(project)}) + set_gres_string(job)
+    assert "--mem 64000" in call and "-t 720" in call and "--gpus=1" in call and "--cpus-per-task=2" in call
+
+
+def test_default_profile_runs_locally_on_two_cores():
+    profile = yaml.safe_load((REPO / "workflow/profiles/default/config.yaml").read_text())
+    assert profile["cores"] == 2 and "executor" not in profile
+    slurm = yaml.safe_load((REPO / "workflow/profiles/slurm/config.yaml").read_text())
+    assert slurm["executor"] == "slurm" and slurm["set-resources"]["train"]["gpu"] == 1
+
+
+@pytest.mark.xfail(strict=True, reason="Snakemake looks for its default workflow profile in profiles/default next to "
+                                       "the Snakefile; with the Snakefile at the project root, workflow/profiles/default "
+                                       "applies only when named with --workflow-profile (see the report)")
+def test_plain_snakemake_applies_the_default_profile(tmp_path):
+    project = make_project(tmp_path / "project", tiny_params())
+    dry = run(["snakemake", "-n", "data/pairs"], project)
+    assert "workflow specific profile workflow/profiles/default" in dry.stderr
