@@ -70,6 +70,7 @@ def make_project(where: Path, params: dict) -> Path:
         shutil.copy(REPO / name, where / name)
     for name in ("workflow", "src"):
         shutil.copytree(REPO / name, where / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    os.symlink(os.readlink(REPO / "profiles"), where / "profiles")  # where plain `snakemake` finds profiles/default
     (where / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     return where
 

@@ -1,4 +1,5 @@
 import copy
+import re
 import subprocess
 import sys
 
@@ -67,3 +68,15 @@ def test_cli_stops_at_start_naming_the_key(tmp_path, default_params):
     assert "roi.size: 'big' is not of type 'integer'" in result.stderr
     assert "Traceback" not in result.stderr
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("key, value", [("pairing.val_fraction", float("nan")), ("presets.fast.lr", float("inf")),
+                                        ("classify.low_data_fraction", float("nan"))])
+def test_non_finite_numbers_are_refused_with_their_key(default_params, key, value):
+    section, *rest = key.split(".")
+    target = default_params[section]
+    for part in rest[:-1]:
+        target = target[part]
+    target[rest[-1]] = value
+    with pytest.raises(ParamsError, match=re.escape(key) + ".*not a finite number"):
+        validate_params(default_params)

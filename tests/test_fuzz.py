@@ -561,13 +561,8 @@ def test_stage_inputs_that_are_not_the_expected_table_give_one_line_naming_the_f
         assert not (tmp_path / "out").exists() and not (tmp_path / ".out.tmp").exists()
 
 
-UNCHECKED_COLUMNS = pytest.mark.xfail(
-    strict=True, reason="train.py and generate.py index the pair tables without checking their columns: "
-                        "a table with other columns ends in 'unexpected KeyError' (exit 1) instead of a message naming it")
-
-
 @pytest.mark.parametrize("stage", ["train", "generate"])
-@pytest.mark.parametrize("name", ["missing", "random", pytest.param("columns", marks=UNCHECKED_COLUMNS)])
+@pytest.mark.parametrize("name", ["missing", "random", "columns"])
 def test_training_and_generation_refuse_a_pairs_folder_that_is_not_one(tmp_path, stage, name):
     path = write_params(tmp_path, BASE)
     inputs = table_inputs(tmp_path / "inputs")

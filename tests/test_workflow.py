@@ -167,3 +167,21 @@ def test_real_vitac_sample_trains_and_generates_from_unaligned_pairs(tmp_path, v
         generated = pd.read_parquet(project / f"data/generated/{direction}/generated.parquet")
         assert (generated["ground_truth_path"] == "").all()  # a random partner is no ground truth
         assert (generated["split"] == "test").sum() == 10  # every test tile of the input modality (10 per folder)
+    # scores: set-to-set only (no aligned ground truth); classification needs 2 classes and says so
+    scores = json.loads((project / "data/scores/summary.json").read_text())
+    assert scores["aligned_pairs"] == {"v2t": 0, "t2v": 0} and scores["synthetic"] is False
+    assert scores["scores"]["v2t"]["generated"]["set_colour_ssim"] is not None
+    classify = json.loads((project / "data/classify/tactile/summary.json").read_text())
+    assert classify["status"].startswith("not applicable")
+    report = (project / "reports/summary.md").read_text()
+    assert "only the set-to-set protocol applies" in report and "SYNTHETIC" not in report
+
+
+def test_snakemake_report_collects_the_annotated_outputs(snakemake_project, tmp_path):
+    project, _ = snakemake_project
+    target = tmp_path / "snakemake_report.html"
+    run(["snakemake", "--report", str(target)], project)
+    text = target.read_text(errors="replace")
+    for category in ("Scores", "Classification", "Report"):
+        assert category in text, category
+    assert "by_class.csv" in text and "curves.png" in text and "grid_v2t.png" in text

@@ -30,8 +30,9 @@ import torch
 from tqdm import tqdm
 
 from .classifier import train_classifier
-from .imageio import atomic_output_dir
-from .pairing import DIRECTIONS
+from .generate import GENERATED_COLUMNS
+from .imageio import atomic_output_dir, read_table
+from .pairing import DIRECTIONS, SPLIT_COLUMNS
 from .train import read_tiles, resolve_device
 
 SETTINGS = ("real", "real+generated", "low-data real", "low-data real+generated")
@@ -171,11 +172,9 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     torch.set_num_threads(cfg["threads"])
     direction = direction_producing(modality)
     pairs_dir, generated_root, out_dir = Path(pairs_dir), Path(generated_root), Path(out_dir)
-    splits = pd.read_parquet(pairs_dir / "splits.parquet")
-    generated_file = generated_root / direction / "generated.parquet"
-    if not generated_file.is_file():
-        raise FileNotFoundError(f"{generated_file}: no generated images of {modality} (run the generate stage for {direction})")
-    generated = pd.read_parquet(generated_file)
+    splits = read_table(pairs_dir / "splits.parquet", SPLIT_COLUMNS, "the split table of the pairs stage")
+    generated = read_table(generated_root / direction / "generated.parquet", GENERATED_COLUMNS,
+                           f"the {direction} output table of the generate stage ({modality} images)")
     check_generated_splits(generated, splits, direction)
 
     real = splits[splits["modality"] == modality]

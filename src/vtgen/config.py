@@ -6,6 +6,7 @@ unknown keys are refused, so a typo stops a run at start with the key named.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +44,8 @@ def validate_params(params: Any, source: str = "params.yaml") -> dict:
             problems.append(f"{_key_path(error)}: {error.message}")
         else:
             problems.append(f"{_key_path(error)}: {error.message}")
+    if not problems:
+        problems += [f"{key}: {value!r} is not a finite number" for key, value in _non_finite(params)]
     if not problems and params["dataset"]["source"] == "synthetic" and params["dataset"]["path"] != SYNTHETIC_PATH:
         problems.append(
             f"dataset.path: must be '{SYNTHETIC_PATH}' when dataset.source is 'synthetic' "
@@ -53,6 +56,17 @@ def validate_params(params: Any, source: str = "params.yaml") -> dict:
     if problems:
         raise ParamsError(f"{source} is invalid:\n  " + "\n  ".join(problems))
     return params
+
+
+def _non_finite(value: Any, key: str = "") -> list[tuple[str, float]]:
+    """(dotted key, value) of every NaN or infinite float in ``value`` (JSON schema bounds let them through)."""
+    if isinstance(value, float):
+        return [] if math.isfinite(value) else [(key, value)]
+    if isinstance(value, dict):
+        return [hit for k, v in value.items() for hit in _non_finite(v, f"{key}.{k}" if key else str(k))]
+    if isinstance(value, list):
+        return [hit for i, v in enumerate(value) for hit in _non_finite(v, f"{key}[{i}]")]
+    return []
 
 
 def _translation_problems(params: dict) -> list[str]:

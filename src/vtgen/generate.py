@@ -19,9 +19,9 @@ from PIL import Image
 from tqdm import tqdm
 
 from .gan import to_model_range, to_uint8
-from .imageio import atomic_output_dir, labelled_sheet, write_png
+from .imageio import atomic_output_dir, labelled_sheet, read_table, write_png
 from .models import UNetGenerator
-from .pairing import DIRECTIONS
+from .pairing import DIRECTIONS, PAIR_COLUMNS, SPLIT_COLUMNS
 from .train import read_tiles, resolve_device
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".npy"}
@@ -100,8 +100,8 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
     """
     cfg = params["generate"]
     pairs_dir, models_dir, out_dir = Path(pairs_dir), Path(models_dir), Path(out_dir)
-    pairs = pd.read_parquet(pairs_dir / f"{direction}.parquet")
-    splits = pd.read_parquet(pairs_dir / "splits.parquet")
+    pairs = read_table(pairs_dir / f"{direction}.parquet", PAIR_COLUMNS, f"a {direction} pair table")
+    splits = read_table(pairs_dir / "splits.parquet", SPLIT_COLUMNS, "the split table of the pairs stage")
     tables, summary = [], {"direction": direction, "scopes": {}}
     with atomic_output_dir(out_dir) as tmp:
         for scope in params["translation"]["scope"]:

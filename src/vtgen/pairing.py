@@ -25,6 +25,7 @@ DIRECTIONS = {"v2t": ("visual", "tactile"), "t2v": ("tactile", "visual")}
 SPLITS = ("train", "val", "test")
 TILE_NEEDS = ["tile_path", "class", "modality", "split", "source", "pair_key", "tile_index",
               "box_x", "box_y", "box_w", "box_h"]
+SPLIT_COLUMNS = ["path", "class", "modality", "source", "split"]
 PAIR_COLUMNS = [
     "direction", "split", "class", "input_path", "target_path", "input_source", "target_source", "aligned",
 ]
@@ -120,7 +121,7 @@ def run_pairing(tiles_path: str | Path, pairing: dict, out_dir: str | Path) -> d
     leaks = leaked_sources(tiles)
     summary = {"tiles_per_split": {f"{s}/{m}": int(n) for (s, m), n in tiles.groupby(["split", "modality"]).size().items()}}
     with atomic_output_dir(out_dir) as tmp:
-        tiles[["path", "class", "modality", "source", "split"]].to_parquet(tmp / "splits.parquet", index=False)
+        tiles[SPLIT_COLUMNS].to_parquet(tmp / "splits.parquet", index=False)
         for direction in DIRECTIONS:
             pairs, pair_warnings = build_pairs(tiles, direction, pairing["seed"])
             warnings.extend(pair_warnings)

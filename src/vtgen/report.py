@@ -92,10 +92,18 @@ def model_runs(models_root: Path) -> list[dict]:
     return runs
 
 
+STAGE_ORDER = ["render", "ingest", "roi", "pairs", "train", "generate", "score", "classify", "report"]
+
+
 def stage_timings(benchmarks: Path) -> pd.DataFrame:
-    """Wall seconds and peak memory of each job from Snakemake's benchmark files (empty when absent)."""
+    """Wall seconds and peak memory of each job from Snakemake's benchmark files (empty when absent),
+    in pipeline order."""
+    def order(tsv: Path) -> tuple[int, str]:
+        stage = tsv.stem.split("_")[0]
+        return (STAGE_ORDER.index(stage) if stage in STAGE_ORDER else len(STAGE_ORDER), tsv.stem)
+
     rows = []
-    for tsv in sorted(benchmarks.glob("*.tsv")):
+    for tsv in sorted(benchmarks.glob("*.tsv"), key=order):
         table = pd.read_csv(tsv, sep="\t")
         if table.empty:
             continue

@@ -32,9 +32,10 @@ import pandas as pd
 import torch
 from PIL import Image
 
-from .imageio import atomic_output_dir
+from .generate import GENERATED_COLUMNS
+from .imageio import atomic_output_dir, read_table
 from .metrics import colour_ssim, grey_ssim, ms_ssim, ms_ssim_min_size, pairwise_colour_ssim, psnr
-from .pairing import DIRECTIONS
+from .pairing import DIRECTIONS, PAIR_COLUMNS, SPLIT_COLUMNS
 from .train import read_tiles
 
 CANDIDATES = {
@@ -200,15 +201,13 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
     """Score every direction under ``generated_root``; write ``scores`` (per image), ``by_class``
     (parquet and CSV) and ``summary.json`` to ``out_dir``."""
     pairs_dir, generated_root = Path(pairs_dir), Path(generated_root)
-    splits = pd.read_parquet(pairs_dir / "splits.parquet")
+    splits = read_table(pairs_dir / "splits.parquet", SPLIT_COLUMNS, "the split table of the pairs stage")
     tables = []
     for direction in DIRECTIONS:
-        table_path = generated_root / direction / "generated.parquet"
-        if not table_path.is_file():
-            raise FileNotFoundError(f"{table_path}: no generate output for {direction} (run the generate stage)")
-        pairs = pd.read_parquet(pairs_dir / f"{direction}.parquet")
-        tables.append(score_direction(direction, pd.read_parquet(table_path), splits, pairs,
-                                      params["score"]["batch_size"]))
+        generated = read_table(generated_root / direction / "generated.parquet", GENERATED_COLUMNS,
+                               f"the {direction} output table of the generate stage")
+        pairs = read_table(pairs_dir / f"{direction}.parquet", PAIR_COLUMNS, f"a {direction} pair table")
+        tables.append(score_direction(direction, generated, splits, pairs, params["score"]["batch_size"]))
     scores = pd.concat(tables, ignore_index=True)
     classes_table = by_class(scores)
     size = _image_side(scores.loc[scores["candidate"] == "generated", "image"].iloc[0])

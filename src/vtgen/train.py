@@ -27,9 +27,9 @@ from tqdm import tqdm
 
 from .config import model_settings
 from .gan import adversarial_loss, make_optimizer, random_positioning, to_model_range
-from .imageio import atomic_output_dir
+from .imageio import atomic_output_dir, read_table
 from .models import UNetGenerator, build_discriminator, conditional_pair, count_parameters
-from .pairing import DIRECTIONS
+from .pairing import DIRECTIONS, PAIR_COLUMNS, SPLIT_COLUMNS
 
 LOSS_NAMES = ("loss_d", "loss_g_gan", "loss_g_l1")
 CHECKPOINT_NAME = "last.pt"
@@ -136,8 +136,14 @@ def _all_finite(*modules: torch.nn.Module) -> bool:
 
 
 def _save_atomic(obj, path: Path) -> None:
+    """torch.save to a temporary sibling, then rename. Saving through a file object lets a full disk
+    surface as OSError(ENOSPC) naming the file (torch.save to a path hides it in a RuntimeError)."""
     tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
+    try:
+        with open(tmp, "wb") as handle:
+            torch.save(obj, handle)
+    except OSError as exc:
+        raise OSError(exc.errno, exc.strerror, str(tmp)) from exc
     os.replace(tmp, path)
 
 
@@ -335,8 +341,8 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
         raise ValueError(f"scope '{scope}' is not listed in translation.scope {params['translation']['scope']}")
     settings, run = model_settings(params), params["translation"]
     pairs_dir = Path(pairs_dir)
-    pairs = pd.read_parquet(pairs_dir / f"{direction}.parquet")
-    splits = pd.read_parquet(pairs_dir / "splits.parquet")
+    pairs = read_table(pairs_dir / f"{direction}.parquet", PAIR_COLUMNS, f"a {direction} pair table")
+    splits = read_table(pairs_dir / "splits.parquet", SPLIT_COLUMNS, "the split table of the pairs stage")
     data = load_pair_data(pairs, splits, direction, scope, settings["size"])
     validation = (load_pair_data(pairs, splits, direction, scope, settings["size"], split="val")
                   if not pairs_in(pairs, "val", scope).empty else None)

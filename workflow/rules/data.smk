@@ -11,6 +11,7 @@ rule render:
         directory("data/raw/synthetic"),
     params:
         synthetic=config["synthetic"],
+    threads: config["synthetic"]["workers"]
     benchmark:
         "logs/benchmarks/render.tsv"
     shell:
@@ -28,6 +29,7 @@ rule ingest:
     params:
         dataset=config["dataset"],
         ingest=config["ingest"],
+    threads: config["ingest"]["workers"]
     benchmark:
         "logs/benchmarks/ingest.tsv"
     shell:
@@ -47,6 +49,7 @@ rule roi:
     params:
         roi=config["roi"],
         workers=config["ingest"]["workers"],
+    threads: config["ingest"]["workers"]
     benchmark:
         "logs/benchmarks/roi.tsv"
     shell:
