@@ -30,4 +30,4 @@ test: $(STAMP) browser
 	pytest -q
 
 clean:
-	rm -rf data logs .snakemake reports/*.html
+	rm -rf data logs .snakemake reports/index.html reports/summary.md reports/metrics.json reports/figures
