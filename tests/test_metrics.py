@@ -1,0 +1,449 @@
+"""vtgen.metrics against scikit-image and scipy, at the extremes, and on bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from scipy.ndimage import gaussian_filter
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+from vtgen.metrics import (
+    MS_SSIM_WEIGHTS, colour_ssim, grey_ssim, ms_ssim, ms_ssim_min_size, pairwise_colour_ssim, psnr,
+)
+
+C1_255 = (0.01 * 255) ** 2
+LUMA = np.array([0.299, 0.587, 0.114])
+
+
+def skimage_ssim(x: np.ndarray, y: np.ndarray, data_range: float = 255.0) -> float:
+    """The reference: Wang et al. settings, float64, channels last (2-D images: one channel)."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    channel_axis = -1 if x.ndim == 3 and x.shape[-1] > 1 else None
+    if x.ndim == 3 and x.shape[-1] == 1:
+        x, y = x[..., 0], y[..., 0]
+    return structural_similarity(x, y, channel_axis=channel_axis, gaussian_weights=True, sigma=1.5,
+                                 use_sample_covariance=False, data_range=data_range)
+
+
+def noisy(rng: np.random.Generator, image: np.ndarray, sd: float) -> np.ndarray:
+    return np.clip(image + rng.normal(0, sd, image.shape), 0, 255).round().astype(np.uint8)
+
+
+def gradient(height: int, width: int) -> np.ndarray:
+    yy, xx = np.mgrid[0:height, 0:width] / max(height, width)
+    return (255 * np.stack([xx, yy, (xx + yy) / 2], axis=-1)).round().astype(np.uint8)
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(20190520)
+
+
+@pytest.fixture
+def image_pairs(rng) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    random = rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)
+    smooth = gradient(64, 80)
+    return {
+        "random vs random": (random, rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)),
+        "random vs noisy copy": (random, noisy(rng, random, 25)),
+        "gradient vs noisy copy": (smooth, noisy(rng, smooth, 8)),
+        "gradient vs flipped": (smooth, smooth[::-1].copy()),
+        "binary 0/255": (255 * rng.integers(0, 2, (40, 33, 3), dtype=np.uint8),
+                         255 * rng.integers(0, 2, (40, 33, 3), dtype=np.uint8)),
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# agreement with scikit-image
+
+
+def test_colour_ssim_matches_skimage(image_pairs):
+    for name, (x, y) in image_pairs.items():
+        expected = skimage_ssim(x, y)
+        assert colour_ssim(x, y) == pytest.approx(expected, abs=1e-12), name
+        as_float = colour_ssim(x.astype(np.float64), y.astype(np.float64), data_range=255)
+        assert as_float == pytest.approx(expected, abs=1e-12)
+
+
+def test_colour_ssim_batch_matches_skimage_per_image(rng):
+    x = rng.integers(0, 256, (5, 48, 56, 3), dtype=np.uint8)
+    y = noisy(rng, x, 30)
+    expected = [skimage_ssim(x[i], y[i]) for i in range(5)]
+    scores = colour_ssim(x, y)
+    assert scores.shape == (5,) and scores.dtype == np.float64
+    np.testing.assert_allclose(scores, expected, rtol=0, atol=1e-12)
+
+
+def test_colour_ssim_float_images_in_unit_range(rng):
+    x = rng.random((30, 45, 3))
+    y = np.clip(x + rng.normal(0, 0.1, x.shape), 0, 1)
+    assert colour_ssim(x, y, data_range=1.0) == pytest.approx(skimage_ssim(x, y, data_range=1.0), abs=1e-12)
+
+
+def test_single_channel_matches_skimage_2d(rng):
+    x = rng.integers(0, 256, (32, 27, 1), dtype=np.uint8)
+    y = noisy(rng, x, 20)
+    assert colour_ssim(x, y) == pytest.approx(skimage_ssim(x, y), abs=1e-12)
+
+
+def test_grey_ssim_is_ssim_of_bt601_luma(image_pairs):
+    for name, (x, y) in image_pairs.items():
+        expected = structural_similarity(x @ LUMA, y @ LUMA, gaussian_weights=True, sigma=1.5,
+                                         use_sample_covariance=False, data_range=255)
+        assert grey_ssim(x, y) == pytest.approx(expected, abs=1e-12), name
+
+
+def test_psnr_matches_skimage(image_pairs):
+    for name, (x, y) in image_pairs.items():
+        assert psnr(x, y) == pytest.approx(peak_signal_noise_ratio(x, y, data_range=255), rel=1e-12), name
+    x, y = image_pairs["random vs noisy copy"]
+    xf, yf = x / 255.0, y / 255.0
+    assert psnr(xf, yf, data_range=1.0) == pytest.approx(peak_signal_noise_ratio(xf, yf, data_range=1.0), rel=1e-12)
+
+
+def test_psnr_of_identical_images_is_inf(rng):
+    x = rng.integers(0, 256, (3, 16, 16, 3), dtype=np.uint8)
+    scores = psnr(x, x)
+    assert scores.shape == (3,) and np.all(np.isposinf(scores))
+    assert psnr(x[0], x[0]) == np.inf
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.data())
+def test_property_colour_ssim_bounded_and_equal_to_skimage(data):
+    height = data.draw(st.integers(11, 24), label="height")
+    width = data.draw(st.integers(11, 24), label="width")
+    channels = data.draw(st.sampled_from([1, 3]), label="channels")
+    shape = (height, width, channels)
+    x = data.draw(arrays(np.uint8, shape), label="x")
+    y = data.draw(arrays(np.uint8, shape), label="y")
+    score = colour_ssim(x, y)
+    assert -1.0 <= score <= 1.0
+    assert score == pytest.approx(skimage_ssim(x, y), abs=1e-10)
+
+
+@settings(max_examples=25, deadline=None)
+@given(arrays(np.uint8, (12, 13, 3)), arrays(np.uint8, (12, 13, 3)))
+def test_property_symmetric_and_psnr_matches_skimage(x, y):
+    assert colour_ssim(x, y) == colour_ssim(y, x)
+    expected = peak_signal_noise_ratio(x, y, data_range=255) if (x != y).any() else np.inf
+    assert psnr(x, y) == pytest.approx(expected, rel=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------
+# stability at the extremes (values documented in colour_ssim's Notes)
+
+
+def test_identical_images_score_exactly_one(rng, image_pairs):
+    for x, _ in image_pairs.values():
+        assert colour_ssim(x, x) == 1.0
+        assert grey_ssim(x, x) == 1.0
+    x = rng.random((4, 20, 20, 3))
+    np.testing.assert_array_equal(colour_ssim(x, x, data_range=1.0), 1.0)
+    np.testing.assert_array_equal(colour_ssim(x, x, data_range=1.0, dtype=torch.float32), 1.0)
+
+
+def test_equal_constant_images_score_one():
+    for value in (0, 1, 128, 255):
+        x = np.full((16, 16, 3), value, np.uint8)
+        assert colour_ssim(x, x) == 1.0
+    x = np.full((16, 16, 3), 0.37)
+    assert colour_ssim(x, x, data_range=1.0) == 1.0
+
+
+@pytest.mark.parametrize("c1, c2", [(0, 255), (255, 0), (10, 200), (100, 101), (0, 1)])
+def test_constant_images_follow_the_luminance_formula(c1, c2):
+    x = np.full((2, 16, 20, 3), c1, np.uint8)
+    y = np.full((2, 16, 20, 3), c2, np.uint8)
+    expected = (2 * c1 * c2 + C1_255) / (c1**2 + c2**2 + C1_255)
+    np.testing.assert_allclose(colour_ssim(x, y), expected, rtol=1e-12)
+    assert colour_ssim(x[0], y[0]) == pytest.approx(skimage_ssim(x[0], y[0]), abs=1e-12)
+
+
+def test_black_against_white_is_about_1e_minus_4():
+    black = np.zeros((32, 32, 3), np.uint8)
+    white = np.full((32, 32, 3), 255, np.uint8)
+    score = colour_ssim(black, white)
+    assert np.isfinite(score) and -1 <= score <= 1
+    assert score == pytest.approx(6.5025 / 65031.5025, rel=1e-12)
+    assert score == pytest.approx(9.99900e-5, rel=1e-5)
+    assert ms_ssim(np.zeros((161, 161, 3), np.uint8), np.full((161, 161, 3), 255, np.uint8)) == pytest.approx(
+        (6.5025 / 65031.5025) ** MS_SSIM_WEIGHTS[-1], rel=1e-12)
+
+
+def test_zero_variance_against_texture_is_finite(rng):
+    flat = np.full((24, 24, 3), 128, np.uint8)
+    texture = rng.integers(0, 256, (24, 24, 3), dtype=np.uint8)
+    score = colour_ssim(flat, texture)
+    assert np.isfinite(score) and -1 <= score <= 1
+    assert score == pytest.approx(skimage_ssim(flat, texture), abs=1e-12)
+
+
+def test_nearly_flat_images_match_skimage(rng):
+    # variances of order 1e-18: rounding could push E[x^2] - mu^2 below zero; C2 keeps it harmless
+    x = np.full((20, 20, 3), 0.3)
+    y = x.copy()
+    y[7, 9, 1] += 1e-9
+    for a, b in [(x, y), (y, x), (x + rng.normal(0, 1e-12, x.shape), y)]:
+        score = colour_ssim(a, b, data_range=1.0)
+        assert np.isfinite(score) and -1 <= score <= 1
+        assert score == pytest.approx(skimage_ssim(a, b, data_range=1.0), abs=1e-12)
+
+
+def test_extreme_data_range_values_stay_finite(rng):
+    x = rng.random((20, 20, 3)) * 1e6
+    y = x + rng.normal(0, 1e3, x.shape)
+    assert colour_ssim(x, y, data_range=2e6) == pytest.approx(skimage_ssim(x, y, data_range=2e6), abs=1e-10)
+    tiny = rng.random((20, 20, 3)) * 1e-6
+    assert colour_ssim(tiny, tiny[::-1].copy(), data_range=1e-6) == pytest.approx(
+        skimage_ssim(tiny, tiny[::-1], data_range=1e-6), abs=1e-10)
+
+
+# ---------------------------------------------------------------------------------------------
+# dtypes and data_range
+
+
+def test_uint8_equals_float_with_the_same_values(image_pairs):
+    for name, (x, y) in image_pairs.items():
+        f64, f32 = (x.astype(np.float64), y.astype(np.float64)), (x.astype(np.float32), y.astype(np.float32))
+        assert colour_ssim(x, y) == pytest.approx(colour_ssim(*f64, 255), abs=1e-12)
+        assert colour_ssim(x, y) == pytest.approx(colour_ssim(x / 255.0, y / 255.0, data_range=1.0), abs=1e-9), name
+        assert grey_ssim(x, y) == pytest.approx(grey_ssim(x / 255.0, y / 255.0, data_range=1.0), abs=1e-9)
+        assert psnr(x, y) == pytest.approx(psnr(x / 255.0, y / 255.0, data_range=1.0), rel=1e-9)
+        assert colour_ssim(x, y) == pytest.approx(colour_ssim(*f32, 255), abs=1e-12)
+
+
+@pytest.mark.parametrize("metric", [colour_ssim, grey_ssim, psnr, ms_ssim, pairwise_colour_ssim])
+def test_float_input_needs_data_range(metric, rng):
+    x = rng.random((161, 161, 3))
+    with pytest.raises(ValueError, match="data_range"):
+        metric(x, x)
+    with pytest.raises(ValueError, match="data_range"):
+        metric(x, (x * 255).astype(np.uint8))
+
+
+@pytest.mark.parametrize("bad", [0, -1.0, float("nan"), float("inf")])
+def test_data_range_must_be_positive_and_finite(bad):
+    x = np.zeros((16, 16, 3), np.uint8)
+    with pytest.raises(ValueError, match="data_range"):
+        colour_ssim(x, x, data_range=bad)
+
+
+@pytest.mark.parametrize("value, message", [(np.nan, "NaN"), (np.inf, "infinite"), (-np.inf, "infinite")])
+@pytest.mark.parametrize("metric", [colour_ssim, grey_ssim, psnr, ms_ssim, pairwise_colour_ssim])
+def test_non_finite_input_is_refused(metric, value, message):
+    x = np.zeros((161, 161, 3))
+    y = x.copy()
+    y[3, 4, 1] = value
+    with pytest.raises(ValueError, match=message):
+        metric(x, y, data_range=1.0)
+    with pytest.raises(ValueError, match=message):
+        metric(y, x, data_range=1.0)
+
+
+def test_float32_computation_is_close_to_float64(rng, image_pairs):
+    for name, (x, y) in image_pairs.items():
+        assert colour_ssim(x, y, dtype=torch.float32) == pytest.approx(colour_ssim(x, y), abs=1e-6), name
+    halves = np.zeros((2, 64, 64, 3), np.uint8)
+    halves[:, :, 32:] = 255  # far from the mean everywhere: the worst case for float32 moments
+    noisy_halves = noisy(rng, halves, 2)
+    assert colour_ssim(halves, noisy_halves, dtype=torch.float32) == pytest.approx(
+        colour_ssim(halves, noisy_halves), abs=2e-5)
+    with pytest.raises(ValueError, match="dtype"):
+        colour_ssim(x, y, dtype=torch.float16)
+
+
+# ---------------------------------------------------------------------------------------------
+# shapes
+
+
+def test_mismatched_and_malformed_shapes_are_refused():
+    x = np.zeros((16, 16, 3), np.uint8)
+    cases = [
+        (x, np.zeros((16, 17, 3), np.uint8), r"\(16, 16, 3\) and \(16, 17, 3\)"),
+        (x, x[None], r"\(16, 16, 3\) and \(1, 16, 16, 3\)"),
+        (x[..., 0], x[..., 0], r"\(16, 16\)"),
+        (x[None, None], x[None, None], r"\(1, 1, 16, 16, 3\)"),
+        (np.zeros((16, 16, 4), np.uint8), np.zeros((16, 16, 4), np.uint8), r"\(16, 16, 4\)"),
+        (np.zeros((16, 16, 2), np.uint8), np.zeros((16, 16, 2), np.uint8), r"\(16, 16, 2\)"),
+    ]
+    for a, b, message in cases:
+        for metric in (colour_ssim, grey_ssim, psnr):
+            with pytest.raises(ValueError, match=message):
+                metric(a, b)
+    with pytest.raises(ValueError, match=r"\(16, 16, 1\)"):
+        grey_ssim(x[..., :1], x[..., :1])
+    with pytest.raises(ValueError, match="dtype"):
+        colour_ssim(x.astype(bool), x.astype(bool), data_range=1)
+
+
+def test_images_smaller_than_the_window_are_refused():
+    for shape in [(10, 20, 3), (20, 10, 3), (4, 10, 10, 3)]:
+        x = np.zeros(shape, np.uint8)
+        with pytest.raises(ValueError, match=r"smaller than the 11x11 Gaussian window of SSIM"):
+            colour_ssim(x, x)
+        with pytest.raises(ValueError, match=r"smaller than the 11x11"):
+            grey_ssim(x, x)
+    x = np.zeros((10, 20, 3), np.uint8)
+    with pytest.raises(ValueError, match=r"image is 10x20"):
+        pairwise_colour_ssim(x, x)
+
+
+def test_window_sized_image_has_one_valid_position(rng):
+    x = rng.integers(0, 256, (11, 11, 3), dtype=np.uint8)
+    y = noisy(rng, x, 40)
+    assert colour_ssim(x, y) == pytest.approx(skimage_ssim(x, y), abs=1e-12)
+
+
+def test_batch_equals_single_images_and_single_is_0d(rng):
+    x = rng.integers(0, 256, (4, 24, 30, 3), dtype=np.uint8)
+    y = noisy(rng, x, 15)
+    for metric in (colour_ssim, grey_ssim, psnr):
+        batch = metric(x, y)
+        singles = [metric(x[i], y[i]) for i in range(4)]
+        assert batch.shape == (4,) and all(s.shape == () and s.dtype == np.float64 for s in singles)
+        np.testing.assert_allclose(batch, singles, rtol=0, atol=1e-13)
+    assert colour_ssim(x[:0], y[:0]).shape == (0,)
+
+
+def test_large_batch_is_chunked_consistently(rng):
+    x = rng.integers(0, 256, (70, 12, 12, 3), dtype=np.uint8)  # several chunks of the moment maps
+    y = noisy(rng, x, 50)
+    scores = colour_ssim(x, y)
+    np.testing.assert_allclose(scores[[0, 33, 69]], [skimage_ssim(x[i], y[i]) for i in (0, 33, 69)], atol=1e-12)
+
+
+def test_torch_tensors_are_accepted(rng):
+    x = rng.integers(0, 256, (2, 20, 20, 3), dtype=np.uint8)
+    y = noisy(rng, x, 20)
+    expected = colour_ssim(x, y)
+    np.testing.assert_array_equal(colour_ssim(torch.from_numpy(x), torch.from_numpy(y)), expected)
+    tx = torch.from_numpy(x).double().requires_grad_()
+    np.testing.assert_allclose(colour_ssim(tx, torch.from_numpy(y).double(), data_range=255), expected, atol=1e-12)
+    assert isinstance(psnr(torch.from_numpy(x), torch.from_numpy(y)), np.ndarray)
+
+
+def test_non_contiguous_and_big_endian_arrays(rng):
+    x = rng.integers(0, 256, (30, 30, 3), dtype=np.uint8)
+    y = noisy(rng, x, 20)
+    flipped = x[::-1, ::2]
+    assert colour_ssim(flipped, y[::-1, ::2]) == pytest.approx(skimage_ssim(flipped, y[::-1, ::2]), abs=1e-12)
+    big = x.astype(">f8")
+    assert colour_ssim(big, y.astype(">f8"), data_range=255) == pytest.approx(colour_ssim(x, y), abs=1e-12)
+
+
+def test_ssim_is_symmetric(image_pairs):
+    for x, y in image_pairs.values():
+        assert colour_ssim(x, y) == colour_ssim(y, x)
+        assert grey_ssim(x, y) == grey_ssim(y, x)
+
+
+# ---------------------------------------------------------------------------------------------
+# set-to-set
+
+
+def test_pairwise_equals_the_loop_over_pairs(rng):
+    a = rng.integers(0, 256, (3, 24, 28, 3), dtype=np.uint8)
+    b = np.concatenate([noisy(rng, a, 20), rng.integers(0, 256, (2, 24, 28, 3), dtype=np.uint8)])
+    loop = np.array([[colour_ssim(a[i], b[j]) for j in range(len(b))] for i in range(len(a))])
+    for batch_size in (1, 2, 256):
+        matrix = pairwise_colour_ssim(a, b, batch_size=batch_size)
+        assert matrix.shape == (3, 5) and matrix.dtype == np.float64
+        np.testing.assert_allclose(matrix, loop, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(pairwise_colour_ssim(b, a), loop.T, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(pairwise_colour_ssim(a / 255.0, b / 255.0, data_range=1.0), loop, atol=1e-9)
+    np.testing.assert_allclose(pairwise_colour_ssim(a, b, dtype=torch.float32), loop, atol=1e-6)
+    assert pairwise_colour_ssim(a[0], b).shape == (1, 5)
+    np.testing.assert_array_equal(np.diag(pairwise_colour_ssim(a, a)), 1.0)
+
+
+def test_pairwise_shapes(rng):
+    a = rng.integers(0, 256, (2, 16, 16, 3), dtype=np.uint8)
+    with pytest.raises(ValueError, match=r"\(2, 16, 16, 3\) and \(2, 16, 17, 3\)"):
+        pairwise_colour_ssim(a, np.zeros((2, 16, 17, 3), np.uint8))
+    with pytest.raises(ValueError, match="batch_size"):
+        pairwise_colour_ssim(a, a, batch_size=0)
+    assert pairwise_colour_ssim(a, a[:0]).shape == (2, 0)
+
+
+# ---------------------------------------------------------------------------------------------
+# MS-SSIM
+
+
+def reference_ms_ssim(x: np.ndarray, y: np.ndarray, data_range: float = 255.0) -> float:
+    """Independent per-channel MS-SSIM with scipy filters: 2x2 means of the pixels present."""
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+
+    def halve(image):
+        h, w = image.shape
+        padded = np.full((h + h % 2, w + w % 2), np.nan)
+        padded[:h, :w] = image
+        return np.nanmean(padded.reshape(padded.shape[0] // 2, 2, padded.shape[1] // 2, 2), axis=(1, 3))
+
+    def terms(a, b):
+        f = lambda m: gaussian_filter(m, sigma=1.5, truncate=3.5, mode="reflect")[5:-5, 5:-5]
+        mx, my = f(a), f(b)
+        vx, vy, cov = f(a * a) - mx**2, f(b * b) - my**2, f(a * b) - mx * my
+        cs = (2 * cov + c2) / (vx + vy + c2)
+        return np.mean((2 * mx * my + c1) / (mx**2 + my**2 + c1) * cs), np.mean(cs)
+
+    per_channel = []
+    for c in range(x.shape[-1]):
+        a, b = x[..., c].astype(np.float64), y[..., c].astype(np.float64)
+        value = 1.0
+        for scale, weight in enumerate(MS_SSIM_WEIGHTS):
+            ssim, cs = terms(a, b)
+            value *= max(ssim if scale == len(MS_SSIM_WEIGHTS) - 1 else cs, 0.0) ** weight
+            a, b = halve(a), halve(b)
+        per_channel.append(value)
+    return float(np.mean(per_channel))
+
+
+def test_ms_ssim_min_size():
+    assert ms_ssim_min_size() == (11 - 1) * 2**4 + 1 == 161
+    ok = np.zeros((161, 170, 3), np.uint8)
+    assert ms_ssim(ok, ok) == 1.0
+    for shape in [(160, 200, 3), (200, 160, 3)]:
+        x = np.zeros(shape, np.uint8)
+        with pytest.raises(ValueError, match=rf"{shape[0]}x{shape[1]}.*161x161 minimum of MS-SSIM"):
+            ms_ssim(x, x)
+
+
+def test_ms_ssim_matches_an_independent_reference(rng):
+    x = gradient(171, 165)  # odd sides: the partial 2x2 cells of the pooling are exercised
+    y = noisy(rng, x, 12)
+    assert ms_ssim(x, y) == pytest.approx(reference_ms_ssim(x, y), abs=1e-12)
+    z = rng.integers(0, 256, (161, 161, 1), dtype=np.uint8)
+    w = noisy(rng, z, 40)
+    assert ms_ssim(z, w) == pytest.approx(reference_ms_ssim(z, w), abs=1e-12)
+
+
+def test_ms_ssim_identities_symmetry_and_batches(rng):
+    x = rng.integers(0, 256, (2, 176, 168, 3), dtype=np.uint8)
+    y = noisy(rng, x, 30)
+    np.testing.assert_array_equal(ms_ssim(x, x), 1.0)
+    scores = ms_ssim(x, y)
+    assert scores.shape == (2,) and np.all((scores > 0) & (scores < 1))
+    np.testing.assert_array_equal(scores, ms_ssim(y, x))
+    assert ms_ssim(x[1], y[1]).shape == ()
+    assert ms_ssim(x[1], y[1]) == pytest.approx(scores[1], abs=1e-13)
+    assert ms_ssim(x[0], y[0]) == pytest.approx(reference_ms_ssim(x[0], y[0]), abs=1e-12)
+    assert ms_ssim(x / 255.0, y / 255.0, data_range=1.0) == pytest.approx(scores, abs=1e-9)
+    assert ms_ssim(x, y, dtype=torch.float32) == pytest.approx(scores, abs=1e-6)
+
+
+def test_ms_ssim_decreases_with_noise(rng):
+    clean = gradient(192, 192)
+    scores = [ms_ssim(clean, noisy(rng, clean, sd)) for sd in (0, 2, 5, 10, 20, 40, 80)]
+    assert scores[0] == 1.0
+    assert all(earlier > later for earlier, later in zip(scores, scores[1:])), scores
+
+
+def test_ms_ssim_clamps_negative_structure_to_zero(rng):
+    x = rng.integers(0, 256, (161, 161, 3), dtype=np.uint8)
+    assert ms_ssim(x, 255 - x) == 0.0
+    assert colour_ssim(x, 255 - x) < 0
