@@ -173,7 +173,8 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     direction = direction_producing(modality)
     pairs_dir, generated_root, out_dir = Path(pairs_dir), Path(generated_root), Path(out_dir)
     splits = read_table(pairs_dir / "splits.parquet", SPLIT_COLUMNS, "the split table of the pairs stage")
-    generated = read_table(generated_root / direction / "generated.parquet", GENERATED_COLUMNS,
+    generated_file = generated_root / direction / "generated.parquet"
+    generated = read_table(generated_file, GENERATED_COLUMNS,
                            f"the {direction} output table of the generate stage ({modality} images)")
     check_generated_splits(generated, splits, direction)
 

@@ -363,7 +363,7 @@ def _provenance(page: _Page, params: dict, layout: dict) -> dict:
         f"images in: {ingest.get('entries_in', '?')}, kept: {ingest.get('kept', '?')}, "
         f"quarantined: {ingest.get('quarantined', '?')}, converted with a note: {ingest.get('with_note', '?')}",
         f"classes: {len(ingest.get('classes', []))} ({', '.join(ingest.get('classes', []))})",
-        f"tiles per split: " + ", ".join(f"{k} {v}" for k, v in pairs.get("tiles_per_split", {}).items()),
+        "tiles per split: " + ", ".join(f"{k} {v}" for k, v in pairs.get("tiles_per_split", {}).items()),
     ] + [f"{d.upper()} pairs: " + ", ".join(f"{s} {v['pairs']} ({v['aligned']} aligned)"
                                              for s, v in pairs.get(d, {}).items()) for d in DIRECTIONS]
       + [f"warning: {w}" for w in pairs.get("warnings", [])])

@@ -32,7 +32,7 @@ rule classify:
         "src/vtgen/classify.py",
         "src/vtgen/classifier.py",
     output:
-        report(directory("data/classify/{modality}"), patterns=["curves.png"], caption="../report/classify.rst",
+        report(directory("data/classify/{modality}"), patterns=["{name}.png"], caption="../report/classify.rst",
                category="Classification", subcategory="{modality}"),
     params:
         classify=config["classify"],
