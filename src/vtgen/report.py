@@ -220,6 +220,12 @@ def image_grid(generated: pd.DataFrame, scores: pd.DataFrame | None, direction: 
     return labelled_sheet(rows, titles, per_group=per_class)
 
 
+def _save_figure(fig, path: Path) -> None:
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def loss_figure(runs: list[dict], path: Path, max_models: int = 6) -> None:
     shown = runs[:max_models]
     fig, axes = plt.subplots(len(shown), 2, figsize=(10, 2.6 * len(shown)), squeeze=False)
@@ -240,9 +246,7 @@ def loss_figure(runs: list[dict], path: Path, max_models: int = 6) -> None:
             ax.set_xlabel("iteration")
             ax.legend(fontsize=8)
             ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    _save_figure(fig, path)
 
 
 def scores_figure(by_class: pd.DataFrame, path: Path) -> None:
@@ -261,9 +265,7 @@ def scores_figure(by_class: pd.DataFrame, path: Path) -> None:
         ax.set_title(direction.upper())
         ax.grid(axis="x", alpha=0.3)
     axes[0][0].legend(fontsize=8, loc="lower right")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    _save_figure(fig, path)
 
 
 def accuracy_figure(accuracy: pd.DataFrame, path: Path) -> None:
@@ -284,9 +286,7 @@ def accuracy_figure(accuracy: pd.DataFrame, path: Path) -> None:
         ax.set_ylim(0, 1.02)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    _save_figure(fig, path)
 
 
 def timing_figure(timings: pd.DataFrame, path: Path) -> None:
@@ -295,9 +295,7 @@ def timing_figure(timings: pd.DataFrame, path: Path) -> None:
     ax.invert_yaxis()
     ax.set_xlabel("wall seconds (last run of each job)")
     ax.grid(axis="x", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    _save_figure(fig, path)
 
 
 # ---------------------------------------------------------------- assembling the report
@@ -350,7 +348,8 @@ class _Page:
         self.md.append(f"<details><summary>{summary}</summary>\n\n```\n{text}\n```\n\n</details>\n")
 
 
-def _provenance(page: _Page, params: dict, layout: dict) -> dict:
+def _provenance(page: _Page, params: dict) -> dict:
+    layout = RUN_LAYOUT
     ingest = _read_json(layout["ingest"] / "summary.json") or {}
     pairs = _read_json(layout["pairs"] / "summary.json") or {}
     synthetic = params["dataset"]["source"] == "synthetic"
@@ -375,10 +374,10 @@ def _provenance(page: _Page, params: dict, layout: dict) -> dict:
     return {"synthetic": synthetic, "ingest": ingest, "pairs": pairs}
 
 
-def run_report(params: dict, out_dir: str | Path = "reports", layout: dict | None = None) -> dict:
+def run_report(params: dict, out_dir: str | Path = "reports") -> dict:
     """Build ``index.html``, ``summary.md``, ``metrics.json`` and ``figures/*.png`` in ``out_dir``
-    from the run's stage outputs (``RUN_LAYOUT`` unless ``layout`` overrides it); return the metrics."""
-    layout = {**RUN_LAYOUT, **(layout or {})}
+    from the run's stage outputs (paths in ``RUN_LAYOUT``); return the metrics."""
+    layout = RUN_LAYOUT
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     build = out_dir / ".build.tmp"
@@ -388,7 +387,7 @@ def run_report(params: dict, out_dir: str | Path = "reports", layout: dict | Non
     page = _Page()
     metrics: dict = {}
 
-    provenance = _provenance(page, params, layout)
+    provenance = _provenance(page, params)
     metrics["synthetic"] = provenance["synthetic"]
 
     page.heading("Run")
