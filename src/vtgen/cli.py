@@ -83,6 +83,49 @@ def _report(args, params) -> None:
     run_report(params, args.out)
 
 
+def _study(args, params) -> None:
+    from .studies import run_variant
+
+    run_variant(params, args.kind, args.name, args.out, args.pairs, args.capacity)
+
+
+def _frontier(args, params) -> None:
+    from .studies import summarise_tradeoff
+
+    summarise_tradeoff(params, args.runs, args.out)
+
+
+def _stability(args, params) -> None:
+    from .stability import run_stability, write_stability
+
+    write_stability(run_stability(params, args.iterations), args.out)
+
+
+def _studies_report(args, params) -> None:
+    from .studies_report import run_studies_report
+
+    run_studies_report(params, args.experiments, args.frontier, args.stability, args.out)
+
+
+def _experiments(args, params) -> None:
+    import shlex
+    import subprocess
+
+    from .studies import dvc_queue_command
+
+    for name, experiment in params["studies"]["experiments"]["runs"].items():
+        command = dvc_queue_command(params, name)
+        if command is None:
+            print(f"# {name}: mode '{experiment['mode']}' runs through the studies pipeline only "
+                  f"(snakemake data/studies/experiments/{name})")
+            continue
+        print(shlex.join(command))
+        if args.queue:
+            subprocess.run(command, check=True)
+    if args.queue:
+        print("queued; run them with `dvc queue start` (or `dvc exp run --run-all`), compare with `dvc exp show`")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vtgen", description="Visual-tactile cross-modal data generation pipeline.")
     sub = parser.add_subparsers(dest="stage", required=True)
@@ -118,6 +161,23 @@ def build_parser() -> argparse.ArgumentParser:
     classify.add_argument("--pairs", required=True, help="folder written by the pairs stage")
     classify.add_argument("--generated", required=True, help="folder holding one generate output per direction")
     stage("report", _report, "build reports/index.html, summary.md, metrics.json and figures from the run's outputs")
+    study = stage("study", _study, "run one experiment or trade-off setting of params.yaml's studies section")
+    study.add_argument("--kind", required=True, choices=["experiments", "tradeoff"])
+    study.add_argument("--name", required=True, help="a name under studies.experiments.runs or studies.tradeoff.settings")
+    study.add_argument("--pairs", default="data/pairs", help="the main job's pairs folder (default: data/pairs)")
+    study.add_argument("--capacity", default=None, help="folder written by `vtgen frontier` (per_class experiments)")
+    frontier = stage("frontier", _frontier, "Pareto frontier of the trade-off settings and the capacity-auto choice")
+    frontier.add_argument("--runs", required=True, help="folder holding one `vtgen study --kind tradeoff` output per setting")
+    stability = stage("stability", _stability, "train at the edges of the parameter space and record each outcome")
+    stability.add_argument("--iterations", type=int, default=20, help="training iterations per case (default 20)")
+    studies_report = stage("studies-report", _studies_report, "build the experiments, trade-off and stability report")
+    studies_report.add_argument("--experiments", required=True, help="folder of `vtgen study --kind experiments` outputs")
+    studies_report.add_argument("--frontier", required=True, help="folder written by `vtgen frontier`")
+    studies_report.add_argument("--stability", required=True, help="folder written by `vtgen stability`")
+    experiments = sub.add_parser("experiments", help="print (or queue) the DVC experiments of studies.experiments")
+    experiments.add_argument("--params", default="params.yaml")
+    experiments.add_argument("--queue", action="store_true", help="run `dvc exp run --queue` for each")
+    experiments.set_defaults(func=_experiments)
     translate = sub.add_parser("translate", help="translate your own images or folders with a trained model")
     translate.add_argument("inputs", nargs="+", help="images (PNG, JPEG, ... or .npy) or folders of them")
     translate.add_argument("--model", required=True, help="a trained model folder (models/<direction>/<scope>) or its generator.pt")
