@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import html
 import json
 
 import numpy as np
@@ -127,7 +128,7 @@ def test_studies_pipeline_end_to_end(tmp_path):
     assert set(round_trip["direction"]) == {"round trip, T2V on real pairs only", "round trip, T2V on 50/50 real and generated"}
     assert round_trip["quality"].between(-1, 1).all()
 
-    page = (project / "reports/studies/index.html").read_text()
+    page = html.unescape((project / "reports/studies/index.html").read_text())
     for text in ("SYNTHETIC DATA", "The paper's experiments", "cloth_types", "round_trip", "Speed against accuracy",
                  "figures/pareto.png", "Capacity auto", "Numerical stability"):
         assert text in page

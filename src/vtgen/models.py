@@ -91,6 +91,18 @@ def check_image_batch(x: torch.Tensor, channels: int, size: int | None, network:
         raise ValueError(f"{network}: expected {expected} input, got shape {shape}")
 
 
+def check_batchnorm_values(batch: int, map_shapes: list[tuple[int, int]], network: str, remedy: str) -> None:
+    """Raise ValueError when a training batch of ``batch`` images leaves a BatchNorm layer one value per
+    channel (``batch * H * W == 1`` for one of ``map_shapes``, the ``(H, W)`` each BatchNorm normalises):
+    batch statistics are undefined there (torch's own error names neither the setting nor the layer)."""
+    for index, (height, width) in enumerate(map_shapes):
+        if batch * height * width == 1:
+            raise ValueError(
+                f"{network}: BatchNorm layer {index + 1} of {len(map_shapes)} normalises a {height} x {width} map, "
+                f"so a training batch of {batch} image leaves it one value per channel; {remedy}"
+            )
+
+
 class UNetGenerator(nn.Module):
     """U-Net mapping an ``N x in_channels x size x size`` image to ``N x out_channels x size x size`` in [-1, 1].
 
@@ -186,8 +198,15 @@ class GlobalDiscriminator(nn.Module):
         self.classifier = nn.Linear(widths[-1] * final_side * final_side, 1)
         self.apply(init_weights)
 
+    def batchnorm_sides(self) -> list[int]:
+        """Side of the map each BatchNorm normalises: ``size / 4``, ``size / 8``, ``size / 16``."""
+        return [self.size // 4, self.size // 8, self.size // 16]
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         check_image_batch(x, self.in_channels, self.size, type(self).__name__)
+        if self.training:
+            check_batchnorm_values(x.shape[0], [(s, s) for s in self.batchnorm_sides()], type(self).__name__,
+                                   f"use batch_size >= 2 or size >= 32 (size is {self.size})")
         return self.classifier(torch.flatten(self.features(x), 1))
 
 
@@ -242,6 +261,18 @@ class PatchDiscriminator(nn.Module):
                 return 0
         return side
 
+    def batchnorm_sides(self, side: int) -> list[int]:
+        """Side of the map each BatchNorm normalises for an input side ``side`` (strided layers 2..layers,
+        then the first stride-1 conv); only meaningful when :meth:`output_side` is >= 1."""
+        down_padding, _ = resampling_padding(self.kernel)
+        sides = []
+        for n in range(self.layers):
+            side = (side + 2 * down_padding - self.kernel) // 2 + 1
+            if n > 0:
+                sides.append(side)
+        sides.append(side + 2 * stride1_padding(self.kernel) - self.kernel + 1)
+        return sides
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         check_image_batch(x, self.in_channels, None, type(self).__name__)
         height, width = x.shape[-2:]
@@ -250,6 +281,11 @@ class PatchDiscriminator(nn.Module):
                 f"PatchDiscriminator: input of size {height} x {width} is too small for layers={self.layers} "
                 f"with kernel {self.kernel}"
             )
+        if self.training:
+            check_batchnorm_values(x.shape[0], list(zip(self.batchnorm_sides(height), self.batchnorm_sides(width))),
+                                   type(self).__name__,
+                                   f"use batch_size >= 2, fewer patch_layers (now {self.layers}) or a larger size "
+                                   f"(input {height} x {width}, kernel {self.kernel})")
         return self.model(x)
 
 

@@ -397,6 +397,10 @@ def run_report(params: dict, out_dir: str | Path = "reports") -> dict:
                   f"translation preset: {params['translation']['preset']}, scope: "
                   f"{', '.join(params['translation']['scope'])}"])
     page.preformatted(yaml.safe_dump(params, sort_keys=False), "parameters (params.yaml as run)")
+    page.html.append('<p>Studies outside the main job - the paper\'s experiment rows, the speed-accuracy trade, '
+                     'capacity auto and the stability edge cases: <a href="studies/index.html">studies/index.html</a> '
+                     '(built by <code>snakemake studies</code>).</p>')
+    page.md.append("Studies outside the main job: [studies/index.html](studies/index.html) (built by `snakemake studies`).\n")
 
     # -- translation and training curves
     runs = model_runs(layout["models"])
