@@ -11,8 +11,11 @@ both modalities, so aligned data (equal regions) gives aligned tiles with equal 
 
 An image too small for the centre crop (``crop_fraction`` of its shorter side is under one
 pixel) gives no tile; it is listed with the reason under ``skipped`` in ``summary.json``.
-Images are read, cut and written one per worker thread at a time; only the tile table is
-kept in memory.
+Images are read, cut and written one per worker thread at a time, with at most a few images per
+worker in flight (:func:`vtgen.ingest.stream_map`); the manifest is read row by row and each
+image's tiles are written before the next image is read. Only the tile table is kept in memory,
+built column by column: the tile's file name and box, and the position of its manifest row, whose
+text columns are copied once at the end.
 """
 
 from __future__ import annotations
@@ -24,7 +27,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .imageio import ImageError, atomic_output_dir, labelled_sheet, map_images, read_rgb8, read_table, write_png
+from .imageio import ImageError, atomic_output_dir, labelled_sheet, read_rgb8, read_table, write_png
+from .ingest import stream_map
 from .roi import Box, centre_box, contact_box, cut_tile, remove_markers, tile_boxes
 
 MANIFEST_NEEDS = ["path", "class", "modality", "split", "source", "pair_key"]
@@ -67,36 +71,41 @@ def _too_small(region: Box, roi: dict) -> str:
     return ""
 
 
-def _tile_one(args) -> list[dict] | str:
-    """Tile rows of one manifest image, or the reason it gives no tile."""
-    index, row, roi, tiles_dir = args
+# The tile table's columns taken from the image's manifest row, and the manifest column each comes from.
+_FROM_MANIFEST = {"image_path": "path", "class": "class", "modality": "modality", "split": "split",
+                  "source": "source", "pair_key": "pair_key"}
+_BOX_COLUMNS = ["tile_index", "box_x", "box_y", "box_w", "box_h"]
+
+
+def _tile_one(args) -> list[tuple] | str:
+    """``(tile file name, tile index, box)`` of each tile of one manifest image, written to
+    ``tiles_dir/<modality>/<class>/``, or the reason the image gives no tile."""
+    index, path, modality, cls, roi, tiles_dir, made = args
     try:
-        image = read_rgb8(row["path"]).rgb
+        image = read_rgb8(path).rgb
     except ImageError as exc:
-        raise ImageError(f"{row['path']}: {exc} (has it changed since the ingest stage? rerun ingest)") from exc
-    if row["modality"] == "tactile":
+        raise ImageError(f"{path}: {exc} (has it changed since the ingest stage? rerun ingest)") from exc
+    if modality == "tactile":
         if roi["remove_markers"]:
             image = remove_markers(image)
         try:
             region = tactile_region(image, roi["tactile_box"])
         except ValueError as exc:
-            raise ValueError(f"{row['path']}: {exc}") from exc
+            raise ValueError(f"{path}: {exc}") from exc
     else:
         region = Box(0, 0, image.shape[1], image.shape[0])
     if reason := _too_small(region, roi):
         return reason
+    folder = tiles_dir / modality / cls
+    if folder not in made:  # one mkdir per folder, not per image (a race only repeats a harmless mkdir)
+        folder.mkdir(parents=True, exist_ok=True)
+        made.add(folder)
     out = []
-    folder = tiles_dir / row["modality"] / row["class"]
-    folder.mkdir(parents=True, exist_ok=True)
+    stem = Path(path).stem
     for k, box in enumerate(crop_boxes(region, roi["visual_crop"], roi["crop_fraction"])):
-        name = f"{index:06d}_{Path(row['path']).stem}_{k}.png"
+        name = f"{index:06d}_{stem}_{k}.png"
         write_png(folder / name, cut_tile(image, box, roi["size"]))
-        out.append({
-            "tile_path": f"{row['modality']}/{row['class']}/{name}", "image_path": row["path"],
-            "class": row["class"], "modality": row["modality"], "split": row["split"],
-            "source": row["source"], "pair_key": row["pair_key"], "tile_index": k,
-            "box_x": box.x, "box_y": box.y, "box_w": box.w, "box_h": box.h,
-        })
+        out.append((f"{modality}/{cls}/{name}", k, box))
     return out
 
 
@@ -104,17 +113,30 @@ def cut_dataset_tiles(manifest: pd.DataFrame, roi: dict, tiles_dir: Path, worker
                       progress: bool = True, skipped: list[dict] | None = None) -> pd.DataFrame:
     """Cut all manifest images into ``tiles_dir``; return the tile table (``tile_path`` relative to it).
 
-    Images that give no tile are appended to ``skipped`` as ``{"path", "reason"}``.
+    Images that give no tile are appended to ``skipped`` as ``{"path", "reason"}``. The manifest
+    is read lazily and at most a few images per worker are in flight, so memory holds the tile
+    table (metadata) only, not the pixels of more than a handful of images.
     """
-    jobs = [(i, row, roi, Path(tiles_dir)) for i, row in enumerate(manifest.to_dict("records"))]
-    rows = []
-    for job, tiles in zip(jobs, map_images(_tile_one, jobs, len(jobs), workers, "roi", progress)):
+    tiles_dir, made = Path(tiles_dir), set()
+    jobs = ((i, path, modality, cls, roi, tiles_dir, made) for i, (path, modality, cls) in
+            enumerate(zip(manifest["path"], manifest["modality"], manifest["class"])))
+    tile_paths: list[str] = []
+    positions: list[int] = []  # the manifest row (by position) of each tile
+    boxes: dict[str, list[int]] = {name: [] for name in _BOX_COLUMNS}
+    results = stream_map(_tile_one, jobs, workers, len(manifest), "roi", progress)
+    for position, tiles in enumerate(results):  # results come in manifest order
         if isinstance(tiles, str):
             if skipped is not None:
-                skipped.append({"path": job[1]["path"], "reason": tiles})
+                skipped.append({"path": manifest["path"].iat[position], "reason": tiles})
             continue
-        rows.extend(tiles)
-    return pd.DataFrame(rows, columns=TILE_COLUMNS)
+        for tile_path, k, box in tiles:
+            tile_paths.append(tile_path)
+            positions.append(position)
+            for name, value in zip(_BOX_COLUMNS, (k, box.x, box.y, box.w, box.h)):
+                boxes[name].append(value)
+    rows = manifest.iloc[positions].reset_index(drop=True)  # one manifest row per tile, text copied once
+    table = {"tile_path": tile_paths, **{column: rows[name] for column, name in _FROM_MANIFEST.items()}, **boxes}
+    return pd.DataFrame(table, columns=TILE_COLUMNS)
 
 
 def tile_preview(tiles: pd.DataFrame, tiles_dir: Path, per_class: int = 4, side: int = 96) -> np.ndarray:

@@ -1,0 +1,142 @@
+"""Changing one parameter reruns exactly the stages that read it, and everything downstream of them.
+
+A copy of the finished tiny project (the session's ``snakemake_project``) is recorded in DVC with
+``dvc commit`` (what ``dvc repro`` would have written), so both tools start from the same finished
+run. Then one value of params.yaml is changed at a time and each tool is asked what it would do:
+
+* ``snakemake -n`` (default target): the jobs it would run; those whose reason is a parameter
+  change are the stages that read the value, the others run because their inputs will change;
+* ``dvc status`` of the default pipeline (``report`` and its upstream stages): the stages whose
+  declared parameters changed (DVC names only those; ``dvc repro`` then reruns what follows).
+
+Stage names follow DVC (``train@v2t-all``, ``classify@visual``); Snakemake jobs are named the same
+way from their wildcards. Rules and stages outside the default target (studies) are not asked.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import re
+import shutil
+import subprocess
+
+import networkx as nx
+import pytest
+import yaml
+
+from conftest import ENV, REPO, run
+
+pytestmark = pytest.mark.e2e
+
+TRAIN = {"train@v2t-all", "train@t2v-all"}
+GENERATE = {"generate@v2t", "generate@t2v"}
+CLASSIFY = {"classify@visual", "classify@tactile"}
+FROM_GENERATE = GENERATE | {"score"} | CLASSIFY | {"report", "all"}
+FROM_TRAIN = TRAIN | FROM_GENERATE
+FROM_PAIRS = {"pairs"} | FROM_TRAIN
+EVERYTHING = {"render", "ingest", "roi"} | FROM_PAIRS
+
+# dotted key, new value, stages `dvc status` reports (the ones reading the key), jobs `snakemake -n` runs
+CASES = [
+    ("classify.epochs", 3, CLASSIFY, CLASSIFY | {"report", "all"}),
+    ("score.batch_size", 64, {"score"}, {"score", "report", "all"}),
+    ("generate.train_share", 0.25, GENERATE, FROM_GENERATE),
+    ("translation.log_every", 3, TRAIN | {"report"}, FROM_TRAIN),
+    ("translation.device", "cpu", TRAIN | GENERATE | CLASSIFY | {"report"}, FROM_TRAIN),
+    ("presets.fast.iterations", 12, TRAIN, FROM_TRAIN),
+    ("presets.paper.ngf", 16, set(), set()),  # a preset that translation.preset does not select
+    ("pairing.seed", 1, {"pairs"}, FROM_PAIRS),
+    ("roi.size", 24, {"roi"}, {"roi"} | FROM_PAIRS),
+    ("synthetic.seed", 1, {"render"}, EVERYTHING),
+]
+
+
+@pytest.fixture(scope="module")
+def finished(snakemake_project, tmp_path_factory):
+    """A copy of the finished tiny project, recorded by DVC too, and its params."""
+    source, _ = snakemake_project
+    project = tmp_path_factory.mktemp("rerun") / "project"
+    # copy2 keeps modification times, and .snakemake/ holds the recorded params: still finished
+    shutil.copytree(source, project, symlinks=True, ignore=shutil.ignore_patterns("locks", "incomplete"))
+    # the repository's .gitignore ignores the outputs, so DVC writes no .gitignore files among them
+    # (one in models/v2t/ would change generate's dependency models/v2t)
+    shutil.copy(REPO / ".gitignore", project / ".gitignore")
+    run(["git", "init", "-q"], project)
+    run(["dvc", "init", "-q"], project)
+    run(["dvc", "config", "core.analytics", "false"], project)
+    run(["dvc", "commit", "-f", "--with-deps", "report"], project)
+    params = yaml.safe_load((project / "params.yaml").read_text())
+    assert "Nothing to be done" in run(["snakemake", "-n"], project).stdout
+    assert dvc_changed(project) == set()
+    return project, params
+
+
+def dvc_changed(project) -> set[str]:
+    return set(json.loads(run(["dvc", "status", "--json", "report", "--with-deps"], project).stdout))
+
+
+def snakemake_jobs(dry_run: str) -> tuple[set[str], set[str]]:
+    """(all jobs, jobs run because their params changed) of a `snakemake -n` output."""
+    jobs, by_params = set(), set()
+    for block in re.split(r"\n(?=(?:local)?rule \w+:)", dry_run):
+        head = re.match(r"(?:local)?rule (\w+):", block)
+        if not head:
+            continue
+        wildcards = re.search(r"^\s+wildcards: (.*)$", block, flags=re.M)
+        name = head[1] + ("@" + "-".join(w.split("=", 1)[1] for w in wildcards[1].split(", ")) if wildcards else "")
+        jobs.add(name)
+        if re.search(r"^\s+reason:.*Params have changed", block, flags=re.M):
+            by_params.add(name)
+    return jobs, by_params
+
+
+def with_value(params: dict, key: str, value) -> dict:
+    edited = copy.deepcopy(params)
+    *path, last = key.split(".")
+    section = edited
+    for part in path:
+        section = section[part]
+    assert last in section and section[last] != value, key
+    section[last] = value
+    return edited
+
+
+@pytest.mark.parametrize("key, value, dvc_expected, snakemake_expected", CASES, ids=[c[0] for c in CASES])
+def test_one_parameter_reruns_exactly_the_stages_that_depend_on_it(finished, key, value, dvc_expected, snakemake_expected):
+    project, params = finished
+    (project / "params.yaml").write_text(yaml.safe_dump(with_value(params, key, value), sort_keys=False))
+    try:
+        # the two tools only read; ask both at once
+        smk = subprocess.Popen(["snakemake", "-n"], cwd=project, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                               text=True)
+        changed = dvc_changed(project)
+        dry_run = smk.communicate()[0]
+        assert smk.returncode == 0, dry_run[-3000:]
+    finally:
+        (project / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    jobs, by_params = snakemake_jobs(dry_run)
+
+    assert changed == dvc_expected, f"dvc status after changing {key}"
+    assert jobs == snakemake_expected, f"snakemake -n after changing {key}"
+    if not snakemake_expected:
+        assert "Nothing to be done" in dry_run
+    # both tools agree: Snakemake runs the stages DVC names and everything after them in DVC's graph,
+    # and gives changed params as the reason for those of them that no other changed stage precedes
+    # (it gives one reason per job, "input files updated" once an upstream job reruns)
+    from dvc.repo import Repo
+
+    with Repo(str(project)) as repo:
+        graph = repo.index.graph  # edges run from a stage to the stages it depends on
+        stages = {stage.name: stage for stage in graph.nodes}
+        main = {"report"} | {s.name for s in nx.descendants(graph, stages["report"])}  # the default target's stages
+        after = {name: {s.name for s in nx.ancestors(graph, stages[name])} & main for name in dvc_expected}
+    assert jobs - {"all"} == set(dvc_expected).union(*after.values())
+    first = {name for name in dvc_expected if not any(name in after[other] for other in dvc_expected)}
+    assert first <= by_params <= set(dvc_expected)
+
+
+def test_after_restoring_the_parameters_nothing_is_left_to_do(finished):
+    project, _ = finished
+    assert "Nothing to be done" in run(["snakemake", "-n"], project).stdout
+    assert dvc_changed(project) == set()
