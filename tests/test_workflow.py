@@ -84,7 +84,7 @@ def test_snakemake_and_dvc_run_the_same_commands_and_outputs(snakemake_project, 
         dry, flags=re.S)}
     from dvc.repo import Repo
 
-    stages = [s for s in Repo(str(project)).index.stages if s.dvcfile.relpath == "dvc.yaml"]
+    stages = [s for s in Repo(str(project)).index.stages if s.path_in_repo == "dvc.yaml"]
     def outputs(stage) -> str:
         return ", ".join(sorted(str(o.def_path) for o in stage.outs))
 
@@ -119,6 +119,21 @@ def test_snakemake_and_dvc_run_the_same_commands_and_outputs(snakemake_project, 
     # training is deterministic on CPU, so both tools generate the same pixels
     for path in sorted((project / "data/generated").rglob("*.png")):
         assert path.read_bytes() == (smk / path.relative_to(project)).read_bytes(), path
+
+    # a DVC experiment: -S edits one value, only the stages reading it rerun, `dvc exp show` compares
+    run(["git", "add", "-A"], project)
+    run(["git", "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "baseline run"], project)
+    ran = run(["dvc", "exp", "run", "-n", "wider_classifier", "-S", "classify.width=0.25"], project).stdout
+    assert "Running stage 'classify@visual'" in ran and "Running stage 'train" not in ran
+    shown = json.loads(run(["dvc", "exp", "show", "--json"], project).stdout)
+    experiments = {e["name"]: e for rev in shown for e in (rev.get("experiments") or [])
+                   for e in [e["revs"][0]] if e.get("name")} if shown else {}
+    assert "wider_classifier" in experiments
+    data = experiments["wider_classifier"]["data"]
+    assert data["params"]["params.yaml"]["data"]["classify"]["width"] == 0.25
+    assert "reports/metrics.json" in data["metrics"]
+    diff = json.loads(run(["dvc", "metrics", "diff", "HEAD", "--json"], project).stdout)
+    assert "reports/metrics.json" in diff
 
 
 def test_snakemake_refuses_config_overrides(snakemake_project):

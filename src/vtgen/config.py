@@ -16,6 +16,8 @@ import yaml
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 SCHEMA_PATH = PROJECT_ROOT / "workflow" / "schemas" / "params.schema.yaml"
 SYNTHETIC_PATH = "data/raw/synthetic"
+# direction -> (input modality, output modality); here, not in pairing, so the Snakefile imports no pandas
+DIRECTIONS = {"v2t": ("visual", "tactile"), "t2v": ("tactile", "visual")}
 
 
 class ParamsError(ValueError):

@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from .config import DIRECTIONS
 from .imageio import atomic_output_dir, read_table
 
-DIRECTIONS = {"v2t": ("visual", "tactile"), "t2v": ("tactile", "visual")}
 SPLITS = ("train", "val", "test")
 TILE_NEEDS = ["tile_path", "class", "modality", "split", "source", "pair_key", "tile_index",
               "box_x", "box_y", "box_w", "box_h"]

@@ -226,7 +226,10 @@ def run_variant(params: dict, kind: str, name: str, out_dir: str | Path, pairs_d
     else:
         experiment = params["studies"]["experiments"]["runs"][name]
         runs = [("run", variant, experiment["directions"], experiment["mode"])]
-    tables, result = [], {"kind": kind, "name": name, "overrides": overrides, "synthetic": variant["dataset"]["source"] == "synthetic",
+    from .report import code_version
+
+    tables, result = [], {"kind": kind, "name": name, "overrides": overrides, "code": code_version(),
+                          "synthetic": variant["dataset"]["source"] == "synthetic",
                           "size": model_settings(variant)["size"], "runs": {}}
     result["is_default"] = is_default(params, variant)
     if kind == "experiments":

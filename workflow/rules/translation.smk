@@ -3,7 +3,7 @@
 # on a laptop and a cluster profile runs them side by side.
 # Both read the tile images the pair tables list, so they declare data/roi as well as data/pairs.
 
-from vtgen.pairing import DIRECTIONS
+from vtgen.config import DIRECTIONS
 
 SCOPES = config["translation"]["scope"]
 PRESET = config["presets"][config["translation"]["preset"]]
