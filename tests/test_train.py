@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -9,9 +11,9 @@ import torch
 
 import vtgen.train as train_module
 from conftest import TINY_MODEL, write_image
-from vtgen.gan import to_model_range
-from vtgen.train import (PairData, TrainingDiverged, draw_batch, load_pair_data, read_tiles, run_train,
-                         train_translator)
+from vtgen.gan import random_positioning, to_model_range
+from vtgen.train import (BatchStream, PairData, SpeedChoices, TrainingDiverged, draw_batch, load_pair_data,
+                         prepare_batch, read_tiles, run_train, train_translator)
 
 SETTINGS = dict(TINY_MODEL, gan_loss="bce", l1_weight=100.0, optimizer="adam", lr=0.0002, betas=[0.5, 0.999],
                 noise=True)
@@ -194,3 +196,103 @@ def test_run_train_writes_generator_summary_and_loss_log(tmp_path, monkeypatch):
     assert (tmp_path / "ckpt/v2t/all/last.pt").is_file()
     with pytest.raises(ValueError, match="not listed in translation.scope"):
         run_train(tiny_params(), "v2t", "a", "pairs", "models/v2t/a", "ckpt", progress=False)
+
+
+# --- speed choices: each must leave training semantics intact -------------------------------------------------
+
+PLAIN = SpeedChoices(fused_optimizer=False, freeze_discriminator=False, channels_last=False, prefetch=False)
+
+
+def mixed_pairs() -> PairData:
+    """Half the pairs unaligned, so a batch draw also redraws inputs from the class pools."""
+    data = texture_pairs(n=6)
+    data.aligned[::2] = False
+    return data
+
+
+def test_prepare_batch_draws_what_the_plain_loop_drew():
+    data, a, b = mixed_pairs(), torch.Generator().manual_seed(7), torch.Generator().manual_seed(7)
+    for _ in range(5):
+        inputs, targets = draw_batch(data, 3, a)
+        expected = random_positioning(to_model_range(inputs), to_model_range(targets), a)
+        got = prepare_batch(data, 3, True, b)
+        assert all(torch.equal(e, g) for e, g in zip(expected, got))
+    assert torch.equal(a.get_state(), b.get_state())
+
+
+@pytest.mark.parametrize("noise", [False, True])
+def test_prefetch_keeps_the_batch_order_and_sampler_state_of_the_sequential_draw(noise):
+    data = mixed_pairs()
+    sequential = BatchStream(data, 3, noise, torch.Generator().manual_seed(3))
+    prefetched = BatchStream(data, 3, noise, torch.Generator().manual_seed(3), background=True, depth=2)
+    try:
+        for _ in range(12):
+            for a, b in zip(sequential.next(), prefetched.next()):
+                assert torch.equal(a, b)
+            # the state a checkpoint stores is the one after the batch handed out, not after those prepared ahead
+            assert torch.equal(sequential.sampler_state, prefetched.sampler_state)
+    finally:
+        prefetched.close()
+    assert not prefetched._thread.is_alive()
+
+
+def test_a_failure_on_the_prefetch_thread_reaches_the_training_thread():
+    data = mixed_pairs()
+    data.input_pool = {}  # an unaligned draw now fails with KeyError on the background thread
+    stream = BatchStream(data, 6, False, torch.Generator().manual_seed(0), background=True)
+    try:
+        with pytest.raises(KeyError):
+            stream.next()
+    finally:
+        stream.close()
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_freezing_the_discriminator_and_prefetching_leave_the_weights_bitwise_equal(precision):
+    settings, run = dict(SETTINGS, iterations=8), dict(RUN, precision=precision)
+    plain = train_translator(mixed_pairs(), settings, run, "v2t", "all", progress=False, speed=PLAIN)
+    for speed in (SpeedChoices(fused_optimizer=False, freeze_discriminator=True),
+                  SpeedChoices(fused_optimizer=False, freeze_discriminator=False, prefetch=True)):
+        other = train_translator(mixed_pairs(), settings, run, "v2t", "all", progress=False, speed=speed)
+        assert same_weights(weights(plain.generator), weights(other.generator)), speed
+        assert [r["loss_g_l1"] for r in plain.history] == [r["loss_g_l1"] for r in other.history]
+
+
+def test_the_fused_optimizer_step_matches_the_plain_step_to_rounding():
+    settings = dict(SETTINGS, iterations=6)
+    plain = train_translator(texture_pairs(), settings, RUN, "v2t", "all", progress=False, speed=PLAIN)
+    fused = train_translator(texture_pairs(), settings, RUN, "v2t", "all", progress=False,
+                             speed=dataclasses.replace(PLAIN, fused_optimizer=True))
+    for key, value in weights(plain.generator).items():
+        assert torch.allclose(value.float(), weights(fused.generator)[key].float(), rtol=1e-3, atol=1e-5), key
+    rmsprop = dict(settings, optimizer="rmsprop")
+    a = train_translator(texture_pairs(), rmsprop, RUN, "v2t", "all", progress=False, speed=PLAIN)
+    b = train_translator(texture_pairs(), rmsprop, RUN, "v2t", "all", progress=False,
+                         speed=dataclasses.replace(PLAIN, fused_optimizer=True))
+    for key, value in weights(a.generator).items():
+        assert torch.allclose(value.float(), weights(b.generator)[key].float(), rtol=1e-3, atol=1e-5), key
+
+
+def test_channels_last_bf16_training_is_finite_deterministic_and_returns_a_plain_layout_generator():
+    speed = SpeedChoices(channels_last=True, prefetch=True)
+    run = dict(RUN, precision="bf16")
+    results = [train_translator(mixed_pairs(), dict(SETTINGS, iterations=6), run, "v2t", "all", progress=False,
+                                speed=speed) for _ in range(2)]
+    assert np.isfinite(pd.DataFrame(results[0].history)[["loss_d", "loss_g_gan", "loss_g_l1"]].to_numpy()).all()
+    assert same_weights(weights(results[0].generator), weights(results[1].generator))
+    assert all(t.is_contiguous() for t in results[0].generator.state_dict().values())
+    nchw = train_translator(mixed_pairs(), dict(SETTINGS, iterations=6), run, "v2t", "all", progress=False,
+                            speed=dataclasses.replace(speed, channels_last=False))
+    l1 = [r["loss_g_l1"] for r in results[0].history], [r["loss_g_l1"] for r in nchw.history]
+    assert np.allclose(*l1, rtol=0.05), l1  # same training, up to bf16 rounding in other kernels
+
+
+def test_a_run_with_prefetch_resumes_exactly(tmp_path):
+    settings, speed = dict(SETTINGS, iterations=12), SpeedChoices(prefetch=True)
+    full = train_translator(mixed_pairs(), settings, RUN, "v2t", "all", progress=False)
+    train_translator(mixed_pairs(), dict(settings, iterations=8), RUN, "v2t", "all",
+                     checkpoint_dir=tmp_path, progress=False, speed=speed)
+    resumed = train_translator(mixed_pairs(), settings, RUN, "v2t", "all", checkpoint_dir=tmp_path,
+                               progress=False, speed=speed)
+    assert resumed.resumed_from == 8
+    assert same_weights(weights(full.generator), weights(resumed.generator))
