@@ -1,43 +1,69 @@
 """Milliseconds per image pair of vtgen.metrics.colour_ssim against scikit-image's structural_similarity.
 
 Image pairs are smooth random textures and noisy copies of them (uint8, channels last), so the
-scores sit in the range real comparisons give. Per image:
+scores sit in the range real comparisons give. Methods, each on the same ``--batch`` pairs:
 
 - scikit-image: ``structural_similarity(x, y, channel_axis=-1, gaussian_weights=True, sigma=1.5,
   use_sample_covariance=False, data_range=255)`` in a Python loop over the pairs;
-- vtgen ``colour_ssim`` on the whole batch, computing in float64 (the default) and in float32.
+- torch float64: the previous ``colour_ssim`` path (``vtgen.metrics._torch_colour_ssim``), batched;
+- numba float64: ``colour_ssim`` as it runs now (the fused kernel), batched, on one thread
+  (per-core efficiency, comparable with the single-threaded scikit-image) and on ``--threads``.
 
-Set-to-set (every image of one set against every image of another, ``--set N``):
-``pairwise_colour_ssim`` on N x N pairs against the naive scikit-image double loop, which is
-timed on a ``--skimage-set`` x ``--skimage-set`` subset and given per pair (its cost per pair does
-not depend on N). Every time is the median of ``--repeats`` runs after one warm-up run; "max |diff|"
-is the largest absolute difference from scikit-image's scores on the pairs both computed.
+Set-to-set (every image of one set against every image of another, ``--set N``): the naive
+scikit-image double loop, timed on a ``--skimage-set`` x ``--skimage-set`` subset and given per
+pair (its cost per pair does not depend on N), against ``pairwise_colour_ssim`` on N x N pairs
+(numba) and its previous torch float64 path (``vtgen.metrics._torch_pairwise_colour_ssim``).
+
+Timing: one warm-up run of every method, then ``--repeats`` rounds that run the methods one
+after the other (interleaved, so a change in machine load hits them alike, with a 20 ms pause
+before each so that idle OpenMP threads of the previous one stop spinning); each time is the
+median over the rounds, and the speed-ups are ratios of medians from the same run. "max abs
+diff" is the largest absolute difference from scikit-image's scores on the pairs both computed.
+
+First call: the kernel is compiled by numba on first use and cached on disk. The script times a
+first call in a fresh Python process with an empty cache directory (compiling), and in a second
+one with that cache (loading), for uint8 input.
 
 Allocator warm-up: glibc's malloc serves blocks above its mmap threshold (128 KiB at start) with
 fresh pages, so each one is page-faulted in again, and it raises that threshold only when such
-a block smaller than 32 MiB is freed. Right after the input arrays are built (all larger than
-32 MiB) every 0.5 MiB temporary of scikit-image faults, and it runs about twice as slowly as in
-a process that has freed a mid-sized array once, which is the usual case. The script times
-scikit-image once in that cold state (printed below the table, not used for the ratios), then
-frees a 16 MiB array and times everything warm: the speed-ups are against scikit-image at its best.
+a block smaller than 32 MiB is freed. Right after the input arrays are built every 0.5 MiB
+temporary of scikit-image faults, and it runs about twice as slowly as in a process that has
+freed a mid-sized array once, the usual case. The script frees a 16 MiB array before timing:
+the speed-ups are against scikit-image at its best.
 
-    python benchmarks/ssim_speed.py                    # 64 pairs of 256x256x3, torch threads = 2
-    python benchmarks/ssim_speed.py --pairs 16 --size 128 --repeats 3
+    python benchmarks/ssim_speed.py                          # 64 pairs of 256x256x3, 2 threads
+    python benchmarks/ssim_speed.py --batch 16 --size 128 --repeats 5 --set 8
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
 
+import numba
 import numpy as np
 import torch
 from scipy.ndimage import gaussian_filter
 from skimage.metrics import structural_similarity
 
+from vtgen import metrics
 from vtgen.metrics import colour_ssim, pairwise_colour_ssim
+
+FIRST_CALL = """
+import time
+import numpy as np
+start = time.perf_counter()
+from vtgen.metrics import colour_ssim
+imported = time.perf_counter()
+colour_ssim(np.zeros((1, {size}, {size}, 3), np.uint8), np.full((1, {size}, {size}, 3), 9, np.uint8))
+print(imported - start, time.perf_counter() - imported)
+"""
 
 
 def textured_pairs(n: int, size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -56,64 +82,97 @@ def skimage_ssim(x: np.ndarray, y: np.ndarray) -> float:
                                  use_sample_covariance=False, data_range=255)
 
 
-def median_seconds(function, repeats: int):
-    """(median wall time over ``repeats`` runs after one warm-up, the last result)."""
-    result = function()
-    times = []
+def interleaved_medians(methods: dict, repeats: int) -> tuple[dict[str, float], dict]:
+    """Median wall time of each method over ``repeats`` interleaved rounds after one warm-up
+    round, and each method's last result."""
+    results = {name: function() for name, function in methods.items()}
+    times: dict[str, list[float]] = {name: [] for name in methods}
     for _ in range(repeats):
-        start = time.perf_counter()
-        result = function()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times), result
+        for name, function in methods.items():
+            time.sleep(0.02)  # let the previous method's worker threads stop spinning
+            start = time.perf_counter()
+            results[name] = function()
+            times[name].append(time.perf_counter() - start)
+    return {name: statistics.median(t) for name, t in times.items()}, results
+
+
+def first_call_seconds(size: int) -> tuple[tuple[float, float], tuple[float, float]]:
+    """(import, first call) seconds in a fresh process: with an empty numba cache, then with it."""
+    runs = []
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+        for _ in range(2):
+            out = subprocess.run([sys.executable, "-c", FIRST_CALL.format(size=size)], env=env, check=True,
+                                 capture_output=True, text=True).stdout.split()
+            runs.append((float(out[0]), float(out[1])))
+    return runs[0], runs[1]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--pairs", type=int, default=64, help="image pairs per batch")
+    parser.add_argument("--batch", "--pairs", dest="batch", type=int, default=64,
+                        help="image pairs per batch (skimage loops over them)")
     parser.add_argument("--size", type=int, default=256, help="image side (square, 3 channels)")
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
-    parser.add_argument("--set", type=int, default=32, help="set-to-set: N x N pairs for pairwise_colour_ssim")
-    parser.add_argument("--skimage-set", type=int, default=6,
-                        help="set-to-set: subset side for the skimage double loop")
+    parser.add_argument("--repeats", type=int, default=5, help="interleaved timing rounds (median)")
+    parser.add_argument("--threads", type=int, default=2, help="torch and numba threads")
+    parser.add_argument("--set", type=int, default=16, help="set-to-set: N x N pairs for pairwise_colour_ssim")
+    parser.add_argument("--skimage-set", type=int, default=4,
+                        help="set-to-set: subset side for the skimage double loop (and the diff)")
+    parser.add_argument("--no-first-call", action="store_true", help="skip timing the compilation in subprocesses")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    a, b = textured_pairs(max(args.pairs, args.set), args.size)
-    cold = min(8, args.pairs)
-    start = time.perf_counter()
-    for i in range(cold):
-        skimage_ssim(a[i], b[i])
-    cold_ms = 1e3 * (time.perf_counter() - start) / cold
+    threads = min(args.threads, numba.config.NUMBA_NUM_THREADS)
+    numba.set_num_threads(threads)
+
+    def one_thread(function, *arguments):
+        numba.set_num_threads(1)
+        try:
+            return function(*arguments)
+        finally:
+            numba.set_num_threads(threads)
+
+    n, k = args.batch, args.set
+    s = min(args.skimage_set, k)
+    a, b = textured_pairs(max(n, k), args.size)
+    colour_ssim(a[:1], b[:1])  # compile or load the kernel before anything is timed
     np.ones(2 << 20)  # allocate and free 16 MiB: glibc now keeps blocks up to that size for reuse
-    print(f"CPU: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-          f"{torch.get_num_threads()} torch threads; images {args.size}x{args.size}x3 uint8; "
-          f"median of {args.repeats} runs\n")
-    print("| method | pairs | ms per pair | speed-up vs scikit-image | max abs diff vs scikit-image |")
+
+    per_pair = {
+        "scikit-image structural_similarity, loop": (n, lambda: np.array([skimage_ssim(a[i], b[i]) for i in range(n)])),
+        "torch float64 (previous colour_ssim), batched": (n, lambda: metrics._torch_colour_ssim(a[:n], b[:n])),
+        "numba float64 fused kernel (colour_ssim), batched, 1 thread": (n, lambda: one_thread(colour_ssim, a[:n], b[:n])),
+        f"numba float64 fused kernel (colour_ssim), batched, {threads} threads": (n, lambda: colour_ssim(a[:n], b[:n])),
+    }
+    set_to_set = {
+        f"set-to-set: scikit-image double loop ({s}x{s})": (s * s, lambda: np.array(
+            [[skimage_ssim(a[i], b[j]) for j in range(s)] for i in range(s)])),
+        f"set-to-set: torch float64 (previous pairwise_colour_ssim), {k}x{k}": (k * k, lambda: metrics._torch_pairwise_colour_ssim(a[:k], b[:k])),
+        f"set-to-set: numba pairwise_colour_ssim, {k}x{k}": (k * k, lambda: pairwise_colour_ssim(a[:k], b[:k])),
+    }
+    methods = {name: function for name, (_, function) in {**per_pair, **set_to_set}.items()}
+    seconds, results = interleaved_medians(methods, args.repeats)
+
+    print(f"CPU: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; torch {torch.__version__}, "
+          f"numba {numba.__version__}, {args.threads} torch threads, {threads} numba threads; images {args.size}x{args.size}x3 uint8; "
+          f"median of {args.repeats} interleaved rounds\n")
+    print("| method | pairs | ms per pair | x vs scikit-image | max abs diff vs scikit-image |")
     print("|---|---|---|---|---|")
-
-    n = args.pairs
-    seconds, reference = median_seconds(lambda: np.array([skimage_ssim(a[i], b[i]) for i in range(n)]), args.repeats)
-    skimage_ms = 1e3 * seconds / n
-    print(f"| scikit-image structural_similarity, loop | {n} | {skimage_ms:.2f} | 1.0x | 0 |", flush=True)
-    for dtype in (torch.float64, torch.float32):
-        seconds, scores = median_seconds(lambda: colour_ssim(a[:n], b[:n], dtype=dtype), args.repeats)
-        ms = 1e3 * seconds / n
-        print(f"| vtgen colour_ssim, batched, {str(dtype).removeprefix('torch.')} | {n} | {ms:.2f} | "
-              f"{skimage_ms / ms:.1f}x | {np.abs(scores - reference).max():.1e} |", flush=True)
-
-    k, s = args.set, min(args.skimage_set, args.set)
-    seconds, reference = median_seconds(
-        lambda: np.array([[skimage_ssim(a[i], b[j]) for j in range(s)] for i in range(s)]), args.repeats)
-    skimage_pair_ms = 1e3 * seconds / (s * s)
-    print(f"| set-to-set: scikit-image double loop (timed on {s}x{s}, per pair) | {s * s} | "
-          f"{skimage_pair_ms:.2f} | 1.0x | 0 |", flush=True)
-    for dtype in (torch.float64, torch.float32):
-        seconds, matrix = median_seconds(lambda: pairwise_colour_ssim(a[:k], b[:k], dtype=dtype), args.repeats)
-        ms = 1e3 * seconds / (k * k)
-        print(f"| set-to-set: vtgen pairwise_colour_ssim {k}x{k}, {str(dtype).removeprefix('torch.')} | {k * k} | "
-              f"{ms:.2f} | {skimage_pair_ms / ms:.1f}x | {np.abs(matrix[:s, :s] - reference).max():.1e} |", flush=True)
-    print(f"\nscikit-image before the allocator warm-up (cold glibc malloc, {cold} pairs, one run): "
-          f"{cold_ms:.2f} ms per pair")
+    for table in (per_pair, set_to_set):
+        names = list(table)
+        reference_ms = 1e3 * seconds[names[0]] / table[names[0]][0]
+        reference = results[names[0]]
+        for name in names:
+            pairs = table[name][0]
+            ms = 1e3 * seconds[name] / pairs
+            result = np.asarray(results[name])
+            diff = np.abs((result[:s, :s] if result.ndim == 2 else result) - reference).max()
+            print(f"| {name} | {pairs} | {ms:.3f} | {reference_ms / ms:.1f}x | {diff:.1e} |")
+    print(f"\nthreading layer: {numba.threading_layer()}")
+    if not args.no_first_call:
+        (import_cold, cold), (import_warm, warm) = first_call_seconds(args.size)
+        print(f"first call of colour_ssim in a fresh process (one {args.size}x{args.size}x3 uint8 pair): "
+              f"{cold:.2f} s with an empty numba cache (compiling), {warm:.2f} s with the cache (loading); "
+              f"importing vtgen.metrics: {import_cold:.2f} s / {import_warm:.2f} s")
 
 
 if __name__ == "__main__":

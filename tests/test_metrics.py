@@ -11,6 +11,7 @@ from hypothesis.extra.numpy import arrays
 from scipy.ndimage import gaussian_filter
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
+from vtgen import metrics
 from vtgen.metrics import (
     MS_SSIM_WEIGHTS, colour_ssim, grey_ssim, ms_ssim, ms_ssim_min_size, pairwise_colour_ssim, psnr,
 )
@@ -447,3 +448,148 @@ def test_ms_ssim_clamps_negative_structure_to_zero(rng):
     x = rng.integers(0, 256, (161, 161, 3), dtype=np.uint8)
     assert ms_ssim(x, 255 - x) == 0.0
     assert colour_ssim(x, 255 - x) < 0
+
+
+# ---------------------------------------------------------------------------------------------
+# the fused float64 kernel (numba), the default on CPU; the torch path is the other implementation
+
+
+def extreme_pairs(height: int, width: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """uint8 (H, W, 3) pairs at the extremes: halves, checkerboards, constants."""
+    yy, xx = np.mgrid[0:height, 0:width]
+    halves = np.where(xx < width // 2, 0, 255).astype(np.uint8)[..., None].repeat(3, axis=-1)
+    across = np.where(yy < height // 2, 255, 0).astype(np.uint8)[..., None].repeat(3, axis=-1)
+    pixels = ((yy + xx) % 2 * 255).astype(np.uint8)[..., None].repeat(3, axis=-1)
+    blocks = ((yy // 4 + xx // 3) % 2 * 255).astype(np.uint8)
+    blocks = np.stack([blocks, 255 - blocks, blocks // 2], axis=-1)
+    return {
+        "black/white halves": (halves, across),
+        "halves vs shifted halves": (halves, np.roll(halves, 1, axis=1)),
+        "pixel checkerboard vs its negative": (pixels, 255 - pixels),
+        "pixel checkerboard vs block checkerboard": (pixels, blocks),
+        "checkerboard vs grey": (blocks, np.full_like(blocks, 128)),
+        "black vs white": (np.zeros_like(halves), np.full_like(halves, 255)),
+    }
+
+
+@pytest.mark.parametrize("height, width", [(11, 11), (12, 13), (13, 11), (15, 40), (75, 67), (139, 21)])
+def test_kernel_matches_skimage_on_odd_sizes_and_extremes(rng, height, width):
+    # 139 rows: three bands of output rows (64, 64, 1) and partial blocks of 4 rows
+    pairs = extreme_pairs(height, width)
+    random = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
+    pairs["random vs noisy copy"] = (random, noisy(rng, random, 30))
+    pairs["gradient vs noisy copy"] = (gradient(height, width), noisy(rng, gradient(height, width), 10))
+    for name, (x, y) in pairs.items():
+        expected = skimage_ssim(x, y)
+        assert colour_ssim(x, y) == pytest.approx(expected, abs=1e-12), name
+        assert colour_ssim(x / 255.0, y / 255.0, data_range=1.0) == pytest.approx(
+            skimage_ssim(x / 255.0, y / 255.0, data_range=1.0), abs=1e-12), name
+        assert colour_ssim(x, y) == pytest.approx(metrics._torch_colour_ssim(x, y), abs=1e-13), name
+
+
+def test_kernel_on_real_looking_images(rng):
+    x = gradient(96, 128).astype(np.float64)
+    x += 40 * np.sin(np.arange(128) / 3.0)[None, :, None] * np.cos(np.arange(96) / 5.0)[:, None, None]
+    x = np.clip(x, 0, 255).round().astype(np.uint8)
+    for y in (noisy(rng, x, 12), np.roll(x, 2, axis=0), (x * 0.8 + 20).astype(np.uint8), x[:, ::-1]):
+        assert colour_ssim(x, y) == pytest.approx(skimage_ssim(x, y), abs=1e-12)
+        offset = 1000.0 * x + 5e5, 1000.0 * y + 5e5  # far from zero: the moments are taken about a pixel
+        assert colour_ssim(*offset, data_range=255e3) == pytest.approx(skimage_ssim(*offset, data_range=255e3), abs=1e-12)
+
+
+def test_kernel_batch_of_one_and_batches_bit_for_bit(rng):
+    x = rng.integers(0, 256, (5, 70, 23, 3), dtype=np.uint8)
+    y = noisy(rng, x, 25)
+    batch = colour_ssim(x, y)
+    np.testing.assert_allclose(batch, [skimage_ssim(x[i], y[i]) for i in range(5)], rtol=0, atol=1e-12)
+    for i in range(5):
+        assert colour_ssim(x[i:i + 1], y[i:i + 1]).shape == (1,)
+        assert colour_ssim(x[i:i + 1], y[i:i + 1])[0] == batch[i] == colour_ssim(x[i], y[i])
+    np.testing.assert_array_equal(colour_ssim(y, x), batch)
+
+
+def test_kernel_non_contiguous_input(rng):
+    base = rng.integers(0, 256, (2, 41, 60, 4), dtype=np.uint8)
+    other = noisy(rng, base, 20)
+    views = {
+        "channel slice": (base[..., 1:], other[..., 1:]),
+        "reversed channels and rows": (base[:, ::-1, :, 2::-1], other[:, ::-1, :, 2::-1]),
+        "transposed": (base[..., :3].transpose(0, 2, 1, 3), other[..., :3].transpose(0, 2, 1, 3)),
+        "strided": (base[:, ::2, 1::3, :3], other[:, ::2, 1::3, :3]),
+        "one channel": (base[..., 3:], other[..., 3:]),
+    }
+    for name, (x, y) in views.items():
+        assert not x.flags.c_contiguous, name
+        expected = [skimage_ssim(x[i], y[i]) for i in range(2)]
+        np.testing.assert_allclose(colour_ssim(x, y), expected, rtol=0, atol=1e-12, err_msg=name)
+        np.testing.assert_array_equal(colour_ssim(x, y), colour_ssim(x.copy(), y.copy()))
+    # a permuted tensor, as score.py passes (N, C, H, W) images
+    planar = torch.from_numpy(base[..., :3].transpose(0, 3, 1, 2).copy())
+    other_planar = torch.from_numpy(other[..., :3].transpose(0, 3, 1, 2).copy())
+    np.testing.assert_array_equal(colour_ssim(planar.permute(0, 2, 3, 1), other_planar.permute(0, 2, 3, 1)),
+                                  colour_ssim(base[..., :3], other[..., :3]))
+
+
+def test_kernel_float_dtypes_and_data_range(rng):
+    x = rng.random((3, 30, 26, 3))
+    y = np.clip(x + rng.normal(0, 0.05, x.shape), 0, 1)
+    expected = [skimage_ssim(x[i], y[i], data_range=1.0) for i in range(3)]
+    np.testing.assert_allclose(colour_ssim(x, y, data_range=1.0), expected, rtol=0, atol=1e-12)
+    # data_range enters C1 and C2 only: the same images with L = 2 score differently, as skimage does
+    np.testing.assert_allclose(colour_ssim(x, y, data_range=2.0), [skimage_ssim(x[i], y[i], data_range=2.0)
+                                                                   for i in range(3)], rtol=0, atol=1e-12)
+    assert not np.allclose(colour_ssim(x, y, data_range=2.0), expected)
+    x8 = (255 * x).round().astype(np.uint8)
+    y8 = (255 * y).round().astype(np.uint8)
+    uint8_scores = colour_ssim(x8, y8)
+    for cast in (np.float64, np.float32, np.int16):
+        np.testing.assert_allclose(colour_ssim(x8.astype(cast), y8.astype(cast), data_range=255), uint8_scores,
+                                   rtol=0, atol=1e-13)
+    np.testing.assert_allclose(colour_ssim(x8, y8.astype(np.float64), data_range=255), uint8_scores, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(colour_ssim(torch.from_numpy(x8).float(), torch.from_numpy(y8).half(), data_range=255),
+                               uint8_scores, rtol=0, atol=1e-13)
+
+
+def test_kernel_pairwise_is_colour_ssim_of_each_pair(rng):
+    a = rng.integers(0, 256, (3, 77, 18, 3), dtype=np.uint8)
+    b = np.concatenate([noisy(rng, a, 25), rng.integers(0, 256, (1, 77, 18, 3), dtype=np.uint8), a[:1]])
+    expected = np.array([[skimage_ssim(a[i], b[j]) for j in range(5)] for i in range(3)])
+    loop = np.array([[colour_ssim(a[i], b[j]) for j in range(5)] for i in range(3)])
+    for batch_size in (1, 4, 7, 256):
+        matrix = pairwise_colour_ssim(a, b, batch_size=batch_size)
+        np.testing.assert_allclose(matrix, expected, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(matrix, loop)
+    assert pairwise_colour_ssim(a, b)[0, 4] == 1.0
+    np.testing.assert_array_equal(pairwise_colour_ssim(b, a), loop.T)
+    np.testing.assert_allclose(metrics._torch_pairwise_colour_ssim(a, b), loop, rtol=0, atol=1e-13)
+
+
+def test_grey_ssim_runs_in_the_kernel_and_matches_skimage(rng):
+    x = rng.integers(0, 256, (2, 33, 47, 3), dtype=np.uint8)
+    y = noisy(rng, x, 20)
+    for i in range(2):
+        expected = structural_similarity(x[i] @ LUMA, y[i] @ LUMA, gaussian_weights=True, sigma=1.5,
+                                         use_sample_covariance=False, data_range=255)
+        assert grey_ssim(x, y)[i] == pytest.approx(expected, abs=1e-12)
+
+
+def test_float64_on_cpu_runs_in_the_kernel(monkeypatch, rng):
+    kernel, calls = metrics._ssim_band_sums, []
+    monkeypatch.setattr(metrics, "_ssim_band_sums", lambda x, *rest: calls.append(x.dtype) or kernel(x, *rest))
+    x = rng.integers(0, 256, (2, 20, 20, 3), dtype=np.uint8)
+    colour_ssim(x, x)
+    colour_ssim(x / 255.0, x / 255.0, data_range=1.0)
+    grey_ssim(x, x)
+    pairwise_colour_ssim(x, x)
+    assert calls == [np.uint8, np.float64, np.float64, np.uint8]
+    colour_ssim(x, x, dtype=torch.float32)
+    pairwise_colour_ssim(x, x, dtype=torch.float32)
+    metrics._torch_colour_ssim(x, x)
+    ms_ssim(np.zeros((161, 161, 3), np.uint8), np.zeros((161, 161, 3), np.uint8))
+    assert len(calls) == 4
+
+
+def test_kernel_compiles_without_a_writable_cache():
+    namespace: dict = {}
+    exec("def double(v):\n    return 2 * v\n", namespace)  # no source file: numba has nowhere to cache it
+    assert metrics._jit()(namespace["double"])(21) == 42

@@ -1,4 +1,4 @@
-"""Image-similarity metrics in torch: SSIM per channel (Colour-SSIM), luma SSIM, PSNR, MS-SSIM.
+"""Image-similarity metrics: SSIM per channel (Colour-SSIM), luma SSIM, PSNR, MS-SSIM.
 
 Every function takes two images of the same shape, channels last: one image ``(H, W, C)`` or a
 batch ``(N, H, W, C)``, as numpy arrays or torch tensors, ``uint8`` or floating. It returns
@@ -17,8 +17,11 @@ separable "valid" convolution with no padding. Scores agree with scikit-image to
 on float64 input (``dtype=torch.float64``, the default). Images smaller than the window (11 px)
 are refused, and MS-SSIM needs ``ms_ssim_min_size()`` px.
 
-Computation runs on the device of ``a`` when it is a tensor (CPU for numpy input), in chunks
-of images small enough to stay near the CPU cache; torch's thread settings are left alone.
+Colour-SSIM, grey SSIM and set-to-set SSIM in float64 on CPU (the default) run in one fused
+numba kernel (``_ssim_band_sums``), compiled on first use and cached on disk where a cache
+directory is writable. Everything else (``dtype=torch.float32``, tensors on a GPU, MS-SSIM)
+runs in torch on the device of ``a`` (CPU for numpy input), in chunks of images small enough to
+stay near the CPU cache. torch's and numba's thread settings are left alone.
 
 References: Z. Wang, A. C. Bovik, H. R. Sheikh, E. P. Simoncelli, "Image quality assessment:
 from error visibility to structural similarity", IEEE TIP 13 (2004). Z. Wang, E. P. Simoncelli,
@@ -30,6 +33,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -117,8 +121,8 @@ def _check_window(height: int, width: int, minimum: int = WINDOW,
         raise ValueError(f"image is {height}x{width}, smaller than {what}")
 
 
-def _result(scores: torch.Tensor, single: bool) -> np.ndarray:
-    out = scores.detach().to("cpu", torch.float64).numpy()
+def _result(scores: torch.Tensor | np.ndarray, single: bool) -> np.ndarray:
+    out = scores if isinstance(scores, np.ndarray) else scores.detach().to("cpu", torch.float64).numpy()
     return out[0] if single else out
 
 
@@ -290,10 +294,185 @@ def _chunked_per_channel(x: torch.Tensor, y: torch.Tensor, dtype: torch.dtype, s
     return per_channel
 
 
-def _colour_ssim_batch(x: torch.Tensor, y: torch.Tensor, data_range: float, dtype: torch.dtype) -> torch.Tensor:
+def _colour_ssim_batch(x: torch.Tensor, y: torch.Tensor, data_range: float, dtype: torch.dtype,
+                      use_kernel: bool = True) -> np.ndarray:
+    """Colour-SSIM (n,) float64 of (n, H, W, C) pairs: the numba kernel where ``_use_kernel``
+    (unless ``use_kernel`` is False), else torch."""
     _check_window(x.shape[1], x.shape[2])
+    if use_kernel and _use_kernel(x, dtype):
+        pairs = np.arange(x.shape[0])
+        return _kernel_ssim(*_kernel_arrays(x, y), pairs, pairs, data_range)
     score = lambda xs, ys, workspace: _ssim_per_channel(xs, ys, data_range, dtype, workspace)[0]
-    return _chunked_per_channel(x, y, dtype, score).mean(dim=1)
+    return _result(_chunked_per_channel(x, y, dtype, score).mean(dim=1), False)
+
+
+# ---------------------------------------------------------------------------------------------
+# the fused float64 kernel (numba): Colour-SSIM, grey SSIM and set-to-set SSIM on CPU
+
+BAND_ROWS = 64  # output rows per kernel task; a task is (pair, channel, band of rows)
+ROW_BLOCK = 4  # output rows filtered vertically at once, sharing their loads
+G0, G1, G2, G3, G4, G5 = TAPS[:RADIUS + 1]  # the window is symmetric: TAPS[10 - u] == TAPS[u]
+
+
+def _jit(**options):
+    """``numba.njit`` caching the machine code on disk (numba's ``__pycache__`` next to this file,
+    else its user-wide cache, or ``NUMBA_CACHE_DIR``); where none is writable numba refuses
+    ``cache=True``, and the kernel is compiled again in each process instead."""
+    def decorate(function):
+        try:
+            return numba.njit(cache=True, **options)(function)
+        except RuntimeError:
+            return numba.njit(**options)(function)
+    return decorate
+
+
+@_jit()
+def _taps(v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10):
+    """sum_u TAPS[u] v_u, adding the symmetric taps first (as scipy's correlate1d does)."""
+    return G5 * v5 + G4 * (v4 + v6) + G3 * (v3 + v7) + G2 * (v2 + v8) + G1 * (v1 + v9) + G0 * (v0 + v10)
+
+
+@_jit()
+def _row_taps(rows, k, m, j):
+    """Output j of the horizontal 11-tap filter of rows[k, m]: reads columns j .. j + 10."""
+    return _taps(rows[k, m, j], rows[k, m, j + 1], rows[k, m, j + 2], rows[k, m, j + 3], rows[k, m, j + 4],
+                 rows[k, m, j + 5], rows[k, m, j + 6], rows[k, m, j + 7], rows[k, m, j + 8], rows[k, m, j + 9],
+                 rows[k, m, j + 10])
+
+
+@_jit()
+def _channel_means(images):
+    """Mean of each channel of C-contiguous (N, H, W, C) images: float64 (N, C). Sums each
+    position of the flattened rows over the rows first: contiguous, independent sums vectorise."""
+    n, height, width, channels = images.shape
+    flat = images.reshape((n, height, width * channels))
+    means = np.empty((n, channels))
+    for i in range(n):
+        sums = np.zeros(width * channels)
+        for r in range(height):
+            for q in range(width * channels):
+                sums[q] += flat[i, r, q]
+        for c in range(channels):
+            total = 0.0
+            for q in range(c, width * channels, channels):
+                total += sums[q]
+            means[i, c] = total / (height * width)
+    return means
+
+
+@_jit(parallel=True)
+def _ssim_band_sums(x, y, first, second, x_offsets, y_offsets, c1, c2):
+    """Sums of the SSIM map (Wang et al. 2004) of the pairs (x[first[p]], y[second[p]]): float64
+    (P, C, bands), per channel and band of ``BAND_ROWS`` output rows (the last band may be shorter).
+
+    x (N, H, W, C) and y (M, H, W, C): C-contiguous arrays of one dtype (uint8 or float64), H and
+    W >= 11; x_offsets (N, C) and y_offsets (M, C): ``_channel_means`` of x and y. Each task
+    (pair, channel, band) streams its rows: the moments x', y', x'^2 + y'^2 and x'y' of the
+    centred images x' = x - x_o, y' = y - y_o (SSIM's variances do not change under a shift, and
+    centred moments lose less to cancellation in E[x'^2] - E[x']^2), the vertical 11-tap pass
+    ``ROW_BLOCK`` rows at a time, then per output row the horizontal pass and the SSIM map
+
+        ((2 mu_x mu_y + C1)(2 (E[x'y'] - E[x']E[y']) + C2))
+        / ((mu_x^2 + mu_y^2 + C1)((E[x'^2 + y'^2] - (E[x']^2 + E[y']^2)) + C2)),  mu = E[x'] + x_o,
+
+    summed per column over the band's rows, then over the columns. Plain float64 arithmetic, no
+    fused multiply-add: swapping x and y gives the same bits, and x == y gives exactly 1. Scratch
+    memory is allocated inside the task, where LLVM can tell it aliases nothing (needed to
+    vectorise the loops): about 4 (BAND_ROWS + 13) W + 17 W doubles per task.
+    """
+    _, height, width, channels = x.shape
+    out_h, out_w = height - 2 * RADIUS, width - 2 * RADIUS
+    bands = (out_h + BAND_ROWS - 1) // BAND_ROWS
+    sums = np.empty((first.shape[0], channels, bands))
+    for task in numba.prange(first.shape[0] * channels * bands):
+        p, c, band = task // (channels * bands), (task // bands) % channels, task % bands
+        i, k = first[p], second[p]
+        top = band * BAND_ROWS
+        rows = min(BAND_ROWS, out_h - top)
+        # moments of input rows top + r, r < rows + 10, then ROW_BLOCK - 1 rows of zeros read by
+        # the last block when it is partial (its extra outputs are not used)
+        moments = np.empty((4, rows + 2 * RADIUS + ROW_BLOCK - 1, width))
+        moments[:, rows + 2 * RADIUS:] = 0.0
+        vertical = np.empty((ROW_BLOCK, 4, width))
+        column_sums = np.zeros(out_w)
+        x_o = x_offsets[i, c]
+        y_o = y_offsets[k, c]
+        filled = 0
+        for o in range(0, rows, ROW_BLOCK):
+            for r in range(filled, min(o + ROW_BLOCK + 2 * RADIUS, rows + 2 * RADIUS)):
+                for j in range(width):
+                    a = np.float64(x[i, top + r, j, c]) - x_o
+                    b = np.float64(y[k, top + r, j, c]) - y_o
+                    moments[0, r, j] = a
+                    moments[1, r, j] = b
+                    moments[2, r, j] = a * a + b * b
+                    moments[3, r, j] = a * b
+                filled = r + 1
+            for m in range(4):  # vertical pass: output rows o .. o + 3 from input rows o .. o + 13
+                for j in range(width):
+                    v0 = moments[m, o, j]
+                    v1 = moments[m, o + 1, j]
+                    v2 = moments[m, o + 2, j]
+                    v3 = moments[m, o + 3, j]
+                    v4 = moments[m, o + 4, j]
+                    v5 = moments[m, o + 5, j]
+                    v6 = moments[m, o + 6, j]
+                    v7 = moments[m, o + 7, j]
+                    v8 = moments[m, o + 8, j]
+                    v9 = moments[m, o + 9, j]
+                    v10 = moments[m, o + 10, j]
+                    v11 = moments[m, o + 11, j]
+                    v12 = moments[m, o + 12, j]
+                    v13 = moments[m, o + 13, j]
+                    vertical[0, m, j] = _taps(v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10)
+                    vertical[1, m, j] = _taps(v1, v2, v3, v4, v5, v6, v7, v8, v9, v10, v11)
+                    vertical[2, m, j] = _taps(v2, v3, v4, v5, v6, v7, v8, v9, v10, v11, v12)
+                    vertical[3, m, j] = _taps(v3, v4, v5, v6, v7, v8, v9, v10, v11, v12, v13)
+            for row in range(min(ROW_BLOCK, rows - o)):  # horizontal pass and the SSIM map
+                for j in range(out_w):
+                    mean_x = _row_taps(vertical, row, 0, j)
+                    mean_y = _row_taps(vertical, row, 1, j)
+                    second_sum = _row_taps(vertical, row, 2, j)
+                    cross = _row_taps(vertical, row, 3, j)
+                    mu_x = mean_x + x_o
+                    mu_y = mean_y + y_o
+                    luminance_num = mu_x * mu_y * 2.0 + c1
+                    luminance_den = mu_x * mu_x + mu_y * mu_y + c1
+                    contrast_num = (cross - mean_x * mean_y) * 2.0 + c2
+                    contrast_den = (second_sum - (mean_x * mean_x + mean_y * mean_y)) + c2
+                    column_sums[j] += (luminance_num * contrast_num) / (luminance_den * contrast_den)
+        total = 0.0
+        for j in range(out_w):
+            total += column_sums[j]
+        sums[p, c, band] = total
+    return sums
+
+
+def _use_kernel(x: torch.Tensor, dtype: torch.dtype) -> bool:
+    """Whether SSIM of these images runs in the numba kernel: float64 computation on CPU."""
+    return dtype == torch.float64 and x.device.type == "cpu"
+
+
+def _kernel_arrays(x: torch.Tensor, y: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """(n, H, W, C) CPU tensors as C-contiguous numpy arrays of one dtype the kernel is compiled
+    for: uint8 when both are, else float64 (exact for every other input dtype)."""
+    dtype = torch.uint8 if x.dtype == y.dtype == torch.uint8 else torch.float64
+    return tuple(np.ascontiguousarray(t.to(dtype).numpy()) for t in (x, y))
+
+
+def _kernel_ssim(x: np.ndarray, y: np.ndarray, first: np.ndarray, second: np.ndarray, data_range: float,
+                 x_means: np.ndarray | None = None, y_means: np.ndarray | None = None) -> np.ndarray:
+    """Colour-SSIM (P,) of the pairs (x[first[p]], y[second[p]]): per channel, the mean of the SSIM
+    map over its (H - 10)(W - 10) valid positions; then the mean over the channels. ``x_means``,
+    ``y_means``: ``_channel_means`` of x and y, computed here if not given."""
+    if len(first) == 0:
+        return np.empty(0)
+    x_means = _channel_means(x) if x_means is None else x_means
+    y_means = _channel_means(y) if y_means is None else y_means
+    sums = _ssim_band_sums(x, y, first.astype(np.int64), second.astype(np.int64), x_means, y_means,
+                           (K1 * data_range) ** 2, (K2 * data_range) ** 2)
+    positions = (x.shape[1] - 2 * RADIUS) * (x.shape[2] - 2 * RADIUS)
+    return (sums.sum(axis=2) / positions).mean(axis=1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -314,9 +493,10 @@ def colour_ssim(a, b, data_range: float | None = None, *, dtype: torch.dtype = t
     ----------
     a, b : array or tensor, (H, W, C) or (N, H, W, C), C = 1 or 3, same shape
     data_range : L; default 255 for uint8 input, required otherwise
-    dtype : torch.float64 (default; exact to rounding) or torch.float32 (about 1.3x faster: the
-        filtering runs in float32 on mean-centred images, the formula in float64; differs from
-        float64 by ~1e-7 on natural images, up to a few 1e-6 on high-contrast ones)
+    dtype : torch.float64 (default; exact to rounding; on CPU the fused numba kernel) or
+        torch.float32 (torch: the filtering runs in float32 on mean-centred images, the formula
+        in float64; differs from float64 by ~1e-7 on natural images, up to a few 1e-6 on
+        high-contrast ones; on CPU slower than the float64 kernel, meant for GPU tensors)
 
     Returns
     -------
@@ -335,10 +515,20 @@ def colour_ssim(a, b, data_range: float | None = None, *, dtype: torch.dtype = t
     65031.5025 ~ 9.999e-5. Variances are not clamped, as in scikit-image: the denominator
     sigma_x^2 + sigma_y^2 + C2 stays >= C2 > 0 up to rounding of order 1e-16 L^2.
     """
+    return _colour_ssim(a, b, data_range, dtype, use_kernel=True)
+
+
+def _colour_ssim(a, b, data_range: float | None, dtype: torch.dtype, use_kernel: bool) -> np.ndarray:
     _check_dtype(dtype)
     x, y, single = _check_pair(a, b, (1, 3))
     data_range = _resolve_data_range(x, y, data_range)
-    return _result(_colour_ssim_batch(x, y, data_range, dtype), single)
+    return _result(_colour_ssim_batch(x, y, data_range, dtype, use_kernel), single)
+
+
+def _torch_colour_ssim(a, b, data_range: float | None = None, *, dtype: torch.dtype = torch.float64) -> np.ndarray:
+    """:func:`colour_ssim` computed in torch whatever the device (the path before the numba
+    kernel, kept for the GPU and float32; benchmarks and tests compare against it)."""
+    return _colour_ssim(a, b, data_range, dtype, use_kernel=False)
 
 
 def grey_ssim(a, b, data_range: float | None = None, *, dtype: torch.dtype = torch.float64) -> np.ndarray:
@@ -356,7 +546,7 @@ def grey_ssim(a, b, data_range: float | None = None, *, dtype: torch.dtype = tor
     luma = lambda images: (images.to(torch.float64) * weights).sum(dim=-1, keepdim=True)
     scores = [_colour_ssim_batch(luma(x[part]), luma(y[part]), data_range, dtype)
               for part in _chunks(x.shape[0], x[0].numel())]
-    return _result(torch.cat(scores) if scores else torch.empty(0, dtype=torch.float64), single)
+    return _result(np.concatenate(scores) if scores else np.empty(0), single)
 
 
 def psnr(a, b, data_range: float | None = None) -> np.ndarray:
@@ -486,24 +676,37 @@ def pairwise_colour_ssim(a, b, data_range: float | None = None, batch_size: int 
                          dtype: torch.dtype = torch.float64) -> np.ndarray:
     """(N, M) matrix of :func:`colour_ssim` between every a[i] and every b[j] (set-to-set SSIM).
 
-    Each image's filtered mean E[x] and variance are computed once; each pair adds only its
-    filtered cross moment E[xy] and the formula. Equals ``colour_ssim(a[i], b[j])`` to ~1e-15,
-    and exactly 1 where a[i] == b[j].
+    float64 on CPU: every pair runs through the fused kernel of :func:`colour_ssim` (recomputing
+    an image's statistics costs less than storing and reading them back), so entries equal
+    ``colour_ssim(a[i], b[j])`` bit for bit. Otherwise (float32, GPU) torch computes each image's
+    filtered mean E[x] and variance once and each pair adds only its filtered cross moment E[xy]
+    and the formula; entries equal colour_ssim to ~1e-15. Exactly 1 where a[i] == b[j].
 
     Parameters
     ----------
     a : (N, H, W, C) or one (H, W, C) image (then N = 1); b : (M, H, W, C) or one image
         (M = 1); same H, W and C (1 or 3), same dtype rules and ``data_range`` as colour_ssim
-    batch_size : at most this many pairs are filtered together (fewer for large images, to keep
-        the working set near the cache); memory is bounded by it
+    batch_size : at most this many pairs are computed together (in torch fewer for large
+        images, to keep the working set near the cache); memory is bounded by it
     dtype : as in :func:`colour_ssim`
 
     Returns
     -------
-    float64 array (N, M). The statistics of the smaller set are held in memory: per image
-    C * H * W values of ``dtype`` and 4 C (H-10)(W-10) float64 values (SSIM is symmetric; the
-    larger set is streamed one image at a time).
+    float64 array (N, M). In torch the statistics of the smaller set are held in memory: per
+    image C * H * W values of ``dtype`` and 4 C (H-10)(W-10) float64 values (SSIM is symmetric;
+    the larger set is streamed one image at a time).
     """
+    return _pairwise_colour_ssim(a, b, data_range, batch_size, dtype, use_kernel=True)
+
+
+def _torch_pairwise_colour_ssim(a, b, data_range: float | None = None, batch_size: int = 256, *,
+                                dtype: torch.dtype = torch.float64) -> np.ndarray:
+    """:func:`pairwise_colour_ssim` computed in torch whatever the device (see ``_torch_colour_ssim``)."""
+    return _pairwise_colour_ssim(a, b, data_range, batch_size, dtype, use_kernel=False)
+
+
+def _pairwise_colour_ssim(a, b, data_range: float | None, batch_size: int, dtype: torch.dtype,
+                          use_kernel: bool) -> np.ndarray:
     _check_dtype(dtype)
     if int(batch_size) < 1:
         raise ValueError(f"batch_size must be at least 1, got {batch_size}")
@@ -514,9 +717,23 @@ def pairwise_colour_ssim(a, b, data_range: float | None = None, batch_size: int 
     y = y.to(x.device)
     data_range = _resolve_data_range(x, y, data_range)
     _check_window(*x.shape[1:3])
+    if use_kernel and _use_kernel(x, dtype):
+        return _kernel_pairwise(x, y, data_range, int(batch_size))
     if x.shape[0] < y.shape[0]:
         return _pairwise(y, x, data_range, int(batch_size), dtype).T.copy()
     return _pairwise(x, y, data_range, int(batch_size), dtype)
+
+
+def _kernel_pairwise(x: torch.Tensor, y: torch.Tensor, data_range: float, batch_size: int) -> np.ndarray:
+    """(N, M) Colour-SSIM of every pair, ``batch_size`` pairs per call of the numba kernel."""
+    n, m = x.shape[0], y.shape[0]
+    xs, ys = _kernel_arrays(x, y)
+    x_means, y_means = _channel_means(xs), _channel_means(ys)
+    matrix = np.empty(n * m)
+    for start in range(0, n * m, batch_size):
+        pairs = np.arange(start, min(start + batch_size, n * m))
+        matrix[pairs] = _kernel_ssim(xs, ys, pairs // m, pairs % m, data_range, x_means, y_means)
+    return matrix.reshape(n, m)
 
 
 def _pairwise(streamed: torch.Tensor, held: torch.Tensor, data_range: float, batch_size: int,
