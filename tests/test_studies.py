@@ -59,7 +59,7 @@ def test_dvc_queue_command_carries_base_and_own_overrides(default_params):
     command = dvc_queue_command(default_params, "double_resolution")
     assert command[:6] == ["dvc", "exp", "run", "--queue", "-n", "double_resolution"]
     values = dict(arg.split("=", 1) for arg in command[7::2])
-    assert values == {"presets.fast.iterations": "400", "roi.size": "128", "presets.fast.size": "128"}
+    assert values == {"presets.fast.iterations": "400", "translation.threads": "1", "roi.size": "128", "presets.fast.size": "128"}
     assert dvc_queue_command(default_params, "round_trip") is None  # needs the studies runner
 
 

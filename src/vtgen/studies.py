@@ -87,7 +87,8 @@ def variant_overrides(params: dict, kind: str, name: str) -> dict:
 def is_default(params: dict, variant: dict) -> bool:
     """Whether ``variant`` trains the main job's model on the main job's data (seeds and generation aside)."""
     def key(p: dict) -> str:
-        run = {k: v for k, v in p["translation"].items() if k not in ("seed", "scope", "log_every", "checkpoint_every")}
+        run = {k: v for k, v in p["translation"].items()
+               if k not in ("seed", "scope", "threads", "log_every", "checkpoint_every")}
         return json.dumps([run, model_settings(p), *(p[s] for s in DATA_SECTIONS)], sort_keys=True)
     return key(params) == key(variant)
 
@@ -131,10 +132,14 @@ def prepare_data(params: dict, variant: dict, default_pairs: Path, work: Path) -
     return data / "pairs"
 
 
+_JUDGES: dict = {}
+
+
 def gan_test(variant: dict, splits: pd.DataFrame, generated: pd.DataFrame, modality: str) -> dict:
     """Accuracy of a classifier trained on the real training tiles of ``modality`` (classify settings,
-    first seed) on the real test tiles and on the generated test images ("GAN-test")."""
-    from .classifier import train_classifier
+    first seed) on the real test tiles and on the generated test images ("GAN-test"). The classifier
+    is trained once per process for the same tiles and settings."""
+    from .classifier import accuracy, train_classifier
     from .train import read_tiles
 
     cfg = variant["classify"]
@@ -151,10 +156,14 @@ def gan_test(variant: dict, splits: pd.DataFrame, generated: pd.DataFrame, modal
         return (read_tiles(list(frame[column]), cfg["size"]),
                 torch.tensor([label[c] for c in frame["class"]], dtype=torch.long))
 
-    test_x, test_y = load(test, "path")
-    run = train_classifier(*load(train, "path"), test_x, test_y, len(classes), cfg, cfg["seeds"][0],
-                           extra_eval={"gan_test": load(fake, "output_path")})
-    return {"gan_test": run.extra_accuracy["gan_test"][-1], "real_test": run.test_accuracy[-1], "note": ""}
+    key = json.dumps([list(train["path"]), list(test["path"]), cfg], sort_keys=True, default=str)
+    if key not in _JUDGES:
+        test_x, test_y = load(test, "path")
+        run = train_classifier(*load(train, "path"), test_x, test_y, len(classes), cfg, cfg["seeds"][0])
+        _JUDGES[key] = (run.model, run.test_accuracy[-1])
+    model, real_accuracy = _JUDGES[key]
+    fake_x, fake_y = load(fake, "output_path")
+    return {"gan_test": accuracy(model, fake_x, fake_y) if len(fake_x) else None, "real_test": real_accuracy, "note": ""}
 
 
 def _quality(by_class: pd.DataFrame) -> pd.DataFrame:

@@ -5,6 +5,9 @@
 
 TRADEOFF = list(config["studies"]["tradeoff"]["settings"])
 EXPERIMENTS = list(config["studies"]["experiments"]["runs"])
+# a study job uses the threads its base sets (translation.threads), else the main job's
+STUDY_THREADS = {kind: config["studies"][kind]["base"].get("translation.threads", config["translation"]["threads"])
+                 for kind in ("tradeoff", "experiments")}
 STUDY_CODE = ["src/vtgen/studies.py", "src/vtgen/train.py", "src/vtgen/gan.py", "src/vtgen/models.py",
               "src/vtgen/generate.py", "src/vtgen/score.py", "src/vtgen/classifier.py"]
 
@@ -22,7 +25,7 @@ rule tradeoff_setting:
         translation=config["translation"],
         preset=PRESET,
         classify=config["classify"],
-    threads: config["translation"]["threads"]
+    threads: STUDY_THREADS["tradeoff"]
     wildcard_constraints:
         setting="|".join(TRADEOFF),
     benchmark:
@@ -60,7 +63,7 @@ rule experiment:
         translation=config["translation"],
         preset=PRESET,
         classify=config["classify"],
-    threads: config["translation"]["threads"]
+    threads: STUDY_THREADS["experiments"]
     wildcard_constraints:
         name="|".join(EXPERIMENTS),
     benchmark:
