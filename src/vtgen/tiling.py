@@ -8,6 +8,10 @@ visual images the whole photo. Inside the region, ``roi.visual_crop`` cuts one c
 (``centre``) or a grid of squares (``tiles``) whose side is ``roi.crop_fraction`` of the
 region's shorter side; each crop is resized to ``roi.size``. The same crop rule applies to
 both modalities, so aligned data (equal regions) gives aligned tiles with equal boxes.
+With ``roi.remove_markers`` the GelSight marker dots are painted out of the tactile tiles
+(:func:`vtgen.roi.cut_tiles_without_markers`: inpainted around each crop only, at the tile's
+resolution); with ``tactile_box: auto`` the whole frame is cleaned first, as contact detection
+looks at all of it.
 
 An image too small for the centre crop (``crop_fraction`` of its shorter side is under one
 pixel) gives no tile; it is listed with the reason under ``skipped`` in ``summary.json``.
@@ -24,12 +28,13 @@ import json
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pandas as pd
 
 from .imageio import ImageError, atomic_output_dir, labelled_sheet, read_rgb8, read_table, write_png
 from .ingest import stream_map
-from .roi import Box, centre_box, contact_box, cut_tile, remove_markers, tile_boxes
+from .roi import Box, centre_box, contact_box, cut_tile, cut_tiles_without_markers, remove_markers, tile_boxes
 
 MANIFEST_NEEDS = ["path", "class", "modality", "split", "source", "pair_key"]
 TILE_COLUMNS = [
@@ -85,9 +90,10 @@ def _tile_one(args) -> list[tuple] | str:
         image = read_rgb8(path).rgb
     except ImageError as exc:
         raise ImageError(f"{path}: {exc} (has it changed since the ingest stage? rerun ingest)") from exc
+    clean = modality == "tactile" and roi["remove_markers"]  # paint the GelSight marker dots out of the tiles
     if modality == "tactile":
-        if roi["remove_markers"]:
-            image = remove_markers(image)
+        if clean and roi["tactile_box"] == "auto":  # contact detection looks at the whole cleaned frame
+            image, clean = remove_markers(image), False
         try:
             region = tactile_region(image, roi["tactile_box"])
         except ValueError as exc:
@@ -102,9 +108,14 @@ def _tile_one(args) -> list[tuple] | str:
         made.add(folder)
     out = []
     stem = Path(path).stem
-    for k, box in enumerate(crop_boxes(region, roi["visual_crop"], roi["crop_fraction"])):
+    boxes = crop_boxes(region, roi["visual_crop"], roi["crop_fraction"])
+    if clean:  # inpaints only around the boxes, at the tiles' resolution: same tiles as cleaning the frame, nearly
+        tiles = cut_tiles_without_markers(image, boxes, roi["size"])
+    else:
+        tiles = [cut_tile(image, box, roi["size"]) for box in boxes]
+    for k, (box, tile) in enumerate(zip(boxes, tiles)):
         name = f"{index:06d}_{stem}_{k}.png"
-        write_png(folder / name, cut_tile(image, box, roi["size"]))
+        write_png(folder / name, tile)
         out.append((f"{modality}/{cls}/{name}", k, box))
     return out
 
@@ -123,17 +134,23 @@ def cut_dataset_tiles(manifest: pd.DataFrame, roi: dict, tiles_dir: Path, worker
     tile_paths: list[str] = []
     positions: list[int] = []  # the manifest row (by position) of each tile
     boxes: dict[str, list[int]] = {name: [] for name in _BOX_COLUMNS}
-    results = stream_map(_tile_one, jobs, workers, len(manifest), "roi", progress)
-    for position, tiles in enumerate(results):  # results come in manifest order
-        if isinstance(tiles, str):
-            if skipped is not None:
-                skipped.append({"path": manifest["path"].iat[position], "reason": tiles})
-            continue
-        for tile_path, k, box in tiles:
-            tile_paths.append(tile_path)
-            positions.append(position)
-            for name, value in zip(_BOX_COLUMNS, (k, box.x, box.y, box.w, box.h)):
-                boxes[name].append(value)
+    # our workers are the parallelism: OpenCV's own thread pool on top of them only adds contention
+    opencv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1 if workers > 1 else opencv_threads)
+    try:
+        results = stream_map(_tile_one, jobs, workers, len(manifest), "roi", progress)
+        for position, tiles in enumerate(results):  # results come in manifest order
+            if isinstance(tiles, str):
+                if skipped is not None:
+                    skipped.append({"path": manifest["path"].iat[position], "reason": tiles})
+                continue
+            for tile_path, k, box in tiles:
+                tile_paths.append(tile_path)
+                positions.append(position)
+                for name, value in zip(_BOX_COLUMNS, (k, box.x, box.y, box.w, box.h)):
+                    boxes[name].append(value)
+    finally:
+        cv2.setNumThreads(opencv_threads)
     rows = manifest.iloc[positions].reset_index(drop=True)  # one manifest row per tile, text copied once
     table = {"tile_path": tile_paths, **{column: rows[name] for column, name in _FROM_MANIFEST.items()}, **boxes}
     return pd.DataFrame(table, columns=TILE_COLUMNS)
