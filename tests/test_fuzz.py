@@ -461,7 +461,7 @@ def leaf_keys(tree: dict, prefix: tuple = ()) -> list[tuple]:
 
 LEAVES = leaf_keys(BASE)
 WRONG = {bool: ["yes please", 3, [1]], int: ["twelve", [1], {"a": 1}, None, True], float: ["half", [0.5], None],
-         str: [7, ["a"], {"a": 1}, None], list: ["all", 5, {"a": 1}], type(None): [[1]]}
+         str: [7, ["a"], {"a": 1}, None], list: ["all", 5, {"a": 1}], type(None): [[1]], dict: ["none", [1], 3]}
 
 
 def set_key(tree: dict, key: tuple, value) -> dict:

@@ -6,6 +6,7 @@ unknown keys are refused, so a typo stops a run at start with the key named.
 
 from __future__ import annotations
 
+import copy
 import math
 from pathlib import Path
 from typing import Any
@@ -55,6 +56,8 @@ def validate_params(params: Any, source: str = "params.yaml") -> dict:
         )
     if not problems:
         problems += _translation_problems(params)
+    if not problems:
+        problems += _study_problems(params, validator)
     if problems:
         raise ParamsError(f"{source} is invalid:\n  " + "\n  ".join(problems))
     return params
@@ -82,6 +85,42 @@ def _translation_problems(params: dict) -> list[str]:
         for entry in params["translation"]["scope"]:
             if entry != "all" and entry not in classes:
                 problems.append(f"translation.scope: '{entry}' is neither 'all' nor one of synthetic.classes")
+    return problems
+
+
+def resolve_key(params: dict, key: str) -> str:
+    """A study override's key in params: ``preset.x`` -> ``presets.<translation.preset>.x``, others unchanged."""
+    if key.startswith("preset."):
+        return f"presets.{params['translation']['preset']}.{key[len('preset.'):]}"
+    return key
+
+
+def _study_problems(params: dict, validator: jsonschema.Draft202012Validator) -> list[str]:
+    """Every override under ``studies`` must name an existing key and give it a value the schema accepts,
+    so a typo stops the run at start rather than when the study reaches it."""
+    studies = params["studies"]
+    groups = [("studies.experiments.base", studies["experiments"]["base"]),
+              ("studies.tradeoff.base", studies["tradeoff"]["base"])]
+    groups += [(f"studies.experiments.runs.{n}.set", r["set"]) for n, r in studies["experiments"]["runs"].items()]
+    groups += [(f"studies.tradeoff.settings.{n}", o) for n, o in studies["tradeoff"]["settings"].items()]
+    problems = []
+    for where, overrides in groups:
+        for key, value in overrides.items():
+            parts = resolve_key(params, key).split(".")
+            node = params
+            for part in parts[:-1]:
+                node = node.get(part) if isinstance(node, dict) else None
+            if not isinstance(node, dict) or parts[-1] not in node:
+                problems.append(f"{where}.{key}: params has no key '{'.'.join(parts)}'")
+                continue
+            trial = {**params, parts[0]: copy.deepcopy(params[parts[0]])}
+            target = trial
+            for part in parts[:-1]:
+                target = target[part]
+            target[parts[-1]] = value
+            errors = [e for e in validator.iter_errors(trial) if list(e.absolute_path)[:len(parts)] == parts]
+            problems += [f"{where}.{key}: {e.message}" for e in errors[:1]]
+            problems += [f"{where}.{key}: {v!r} is not a finite number" for _, v in _non_finite(value)]
     return problems
 
 

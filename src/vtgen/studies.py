@@ -34,7 +34,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .config import model_settings, validate_params
+from .config import model_settings, resolve_key, validate_params
 from .imageio import atomic_output_dir, read_table
 from .pairing import DIRECTIONS, PAIR_COLUMNS, SPLIT_COLUMNS
 
@@ -44,13 +44,6 @@ MODES = ("standard", "round_trip", "per_class")
 
 
 # ---------------------------------------------------------------- overrides
-
-def resolve_key(params: dict, key: str) -> str:
-    """``preset.x`` -> ``presets.<translation.preset>.x``; other keys unchanged."""
-    if key.startswith("preset."):
-        return f"presets.{params['translation']['preset']}.{key[len('preset.'):]}"
-    return key
-
 
 def apply_overrides(params: dict, overrides: dict) -> dict:
     """A validated deep copy of ``params`` with each dotted key of ``overrides`` replaced.
@@ -296,7 +289,7 @@ def run_per_class(variant: dict, pairs_dir: Path, work: Path, capacity: str | Pa
             setting = choice["classes"][cls]["setting"]
             overrides.update(choice["settings"][setting])
         run_params = apply_overrides(variant, overrides)
-        table, timing = run_direction(run_params, "v2t", pairs_dir, work / cls, "run", progress)
+        table, timing = run_direction(run_params, "v2t", pairs_dir, work / cls / setting, "run", progress)
         tables.append(table[table["class"] == cls])
         info["classes"][cls] = {"setting": setting, **timing}
     quality = pd.concat(tables, ignore_index=True)
@@ -428,7 +421,7 @@ def summarise_tradeoff(params: dict, runs_root: str | Path, out_dir: str | Path)
     overall = table.set_index("setting").loc[list(same_data), "quality"]
     large = str(overall.idxmax())
     capacity = {"tolerance": tolerance, "large": large, "large_seconds": float(seconds[large]),
-                "settings": {n: settings[n] for n in same_data}, "classes": choice,
+                "settings": {n: variant_overrides(params, "tradeoff", n) for n in same_data}, "classes": choice,
                 "seconds_auto": float(sum(c["seconds"] for c in choice.values())),
                 "seconds_fixed_large": float(seconds[large] * len(choice))}
     capacity["saved_fraction"] = 1 - capacity["seconds_auto"] / capacity["seconds_fixed_large"]

@@ -237,8 +237,14 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def _all_finite(*modules: torch.nn.Module) -> bool:
-    return all(bool(torch.isfinite(t).all()) for m in modules for t in m.state_dict().values() if t.is_floating_point())
+def _non_finite_tensors(*modules: torch.nn.Module) -> list[str]:
+    """Names of the floating state tensors (weights, BatchNorm running statistics) holding NaN or inf."""
+    return [f"{type(m).__name__}.{name}" for m in modules for name, t in m.state_dict().items()
+            if t.is_floating_point() and not bool(torch.isfinite(t).all())]
+
+
+def _describe(bad: list[str]) -> str:
+    return ", ".join(bad[:3]) + (f" and {len(bad) - 3} more" if len(bad) > 3 else "")
 
 
 def _save_atomic(obj, path: Path) -> None:
@@ -352,8 +358,10 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
         nonlocal saved_step
         if not checkpoint_path:
             return
-        if not _all_finite(generator, discriminator):
-            raise TrainingDiverged(f"non-finite weights at step {at_step}; checkpoint not written")
+        bad = _non_finite_tensors(generator, discriminator)
+        if bad:
+            raise TrainingDiverged(f"{direction}/{scope}: non-finite weights at step {at_step} ({_describe(bad)}); "
+                                   f"checkpoint not written; {last_good()}")
         checkpoint_dir.mkdir(parents=True, exist_ok=True)
         _save_atomic({
             "fingerprint": fingerprint, "step": at_step, "history": history, "seconds": elapsed,
@@ -432,8 +440,10 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
     finally:
         batches.close()
         bar.close()
-    if not _all_finite(generator):
-        raise TrainingDiverged(f"{direction}/{scope}: non-finite generator weights at step {step}; {last_good()}")
+    bad = _non_finite_tensors(generator)
+    if bad:
+        raise TrainingDiverged(f"{direction}/{scope}: non-finite generator weights at step {step} ({_describe(bad)}); "
+                               f"{last_good()}")
     seconds = seconds_before + time.perf_counter() - started
     return TrainResult(generator.cpu().to(memory_format=torch.contiguous_format), history, step, seconds,
                        resumed_from, str(device))
