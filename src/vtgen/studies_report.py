@@ -101,10 +101,17 @@ def run_studies_report(params: dict, experiments_dir: str | Path, frontier_dir: 
             per_class = per_class.merge(quality[["class", "quality", "mean_image", "flat_mean_colour"]], on="class")
             page.table(per_class, f"{name}: one V2T model per class at its capacity-auto setting")
             if "fixed_large" in run:
-                fixed = run["fixed_large"]
-                page.para(f"Training time: {run['train_seconds']:.0f} s for all classes, against an estimated "
-                          f"{fixed['train_seconds_estimate']:.0f} s for the fixed setting '{fixed['setting']}' "
-                          f"(its measured trade-off time x {len(run['classes'])} classes).")
+                large = run["fixed_large"]["setting"]
+                at_large = [v["train_seconds"] for v in run["classes"].values() if v["setting"] == large]
+                if at_large:  # classes trained at the large setting in this same run: the fairest yardstick
+                    fixed = sum(at_large) / len(at_large) * len(run["classes"])
+                    basis = f"the mean time of the {len(at_large)} classes trained at it here"
+                else:
+                    fixed, basis = run["fixed_large"]["train_seconds_estimate"], "its trade-off time"
+                page.para(f"Training time with capacity auto: {run['train_seconds']:.0f} s for all "
+                          f"{len(run['classes'])} classes, against about {fixed:.0f} s for the fixed setting "
+                          f"'{large}' for every class ({basis} x {len(run['classes'])}): "
+                          f"{100 * (1 - run['train_seconds'] / fixed):.0f}% saved.")
         else:
             shown = quality[[c for c in ["direction", "class", "metric", "quality", *REFERENCES] if c in quality]]
             page.table(shown.rename(columns=REFERENCES), f"{name}: per class")
