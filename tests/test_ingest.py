@@ -121,7 +121,7 @@ def test_vitac_sample_is_read_with_its_splits(vitac_root, tmp_path):
 def test_stream_map_reads_items_lazily_and_keeps_a_bounded_window():
     import threading
 
-    from vtgen.ingest import stream_map
+    from vtgen.imageio import stream_map
 
     pulled, lock = [], threading.Lock()
 
@@ -143,7 +143,7 @@ def test_stream_map_reads_items_lazily_and_keeps_a_bounded_window():
 
 
 def test_stream_map_raises_the_first_error_and_cancels_the_rest():
-    from vtgen.ingest import stream_map
+    from vtgen.imageio import stream_map
 
     started = []
 

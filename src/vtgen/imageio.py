@@ -7,6 +7,7 @@ Every image enters the pipeline through :func:`read_rgb8`, so the conversion rul
 from __future__ import annotations
 
 import contextlib
+from collections import deque
 import errno
 import hashlib
 import os
@@ -50,8 +51,9 @@ def is_utf8_path(path: str | Path) -> bool:
     return True
 
 
-def file_md5(path: str | Path, chunk: int = 1 << 20) -> str:
-    """MD5 of a file's bytes (the content hash DVC uses too)."""
+def file_md5(path: str | Path, chunk: int = 1 << 16) -> str:
+    """MD5 of a file's bytes (the content hash DVC uses too), read in 64 KiB blocks (a 1 MiB read
+    allocates 1 MiB per call, per file)."""
     digest = hashlib.md5()
     with open(path, "rb") as handle:
         while block := handle.read(chunk):
@@ -187,19 +189,42 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 
-def map_images(func: Callable[[T], R], items: Iterable[T], total: int, workers: int, desc: str,
-               progress: bool = True) -> Iterator[R]:
-    """``func`` over ``items`` on ``workers`` threads, results in order, with a tqdm bar.
+def stream_map(func: Callable[[T], R], items: Iterable[T], workers: int, total: int | None = None, desc: str = "",
+               progress: bool = False, window: int | None = None) -> Iterator[R]:
+    """``func`` over ``items`` on ``workers`` threads, results in input order, streamed.
 
+    At most ``window`` items (default 4 per worker) are taken from ``items`` and not yet handed
+    back, so memory is bounded by the window, not by the number of items: ``items`` may be a lazy
+    iterator and is read only as results are consumed (``Executor.map`` would submit every item at
+    once and keep a future per item).
+    If ``func`` raises, the exception is raised here and the items not started are cancelled.
     Threads suffice: image decoding, resizing and encoding release the GIL.
     """
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        results = pool.map(func, items, chunksize=16)
-        if progress:
-            from tqdm import tqdm
+    workers = max(1, int(workers))
+    window = max(workers, window or 4 * workers)
+    bar = None
+    if progress:
+        from tqdm import tqdm
 
-            results = tqdm(results, total=total, desc=desc, unit="img")
-        yield from results
+        bar = tqdm(total=total, desc=desc, unit="img")
+    pending: deque = deque()
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        try:
+            for item in items:
+                pending.append(pool.submit(func, item))
+                if len(pending) >= window:
+                    yield pending.popleft().result()
+                    if bar is not None:
+                        bar.update()
+            while pending:
+                yield pending.popleft().result()
+                if bar is not None:
+                    bar.update()
+        finally:
+            for future in pending:
+                future.cancel()
+            if bar is not None:
+                bar.close()
 
 
 def write_png(path: str | Path, rgb: np.ndarray) -> None:

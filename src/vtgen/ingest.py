@@ -17,7 +17,7 @@ through; symbolic links to folders inside a modality folder are quarantined, not
 one can loop back to its own parent.
 
 Memory: the readers list file names only; decoding runs on ``ingest.workers`` threads, one image
-per thread at a time, with at most a few images per worker in flight (:func:`stream_map`); each
+per thread at a time, with at most a few images per worker in flight (:func:`vtgen.imageio.stream_map`); each
 decoded image is reduced at once to its metadata, appended column by column to the manifest, so
 memory grows by a few hundred bytes of metadata per file, never with the pixels.
 """
@@ -27,16 +27,13 @@ from __future__ import annotations
 import json
 import re
 import time
-from collections import deque
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, TypeVar
 
 import pandas as pd
 
 from .imageio import (IMAGE_EXTENSIONS, ImageError, atomic_output_dir, check_output_dir, display_path, file_md5, is_utf8_path,
-                      read_rgb8)
+                      read_rgb8, stream_map)
 
 MODALITIES = ("visual", "tactile")
 MANIFEST_COLUMNS = [
@@ -52,48 +49,6 @@ _VITAC_VISUAL = re.compile(r"^IMG_(?P<photo>\d+)_(?P<tile>\d+)$")
 
 class IngestError(RuntimeError):
     """Nothing usable is left in the dataset; the message says what was found."""
-
-
-T = TypeVar("T")
-R = TypeVar("R")
-
-
-def stream_map(func: Callable[[T], R], items: Iterable[T], workers: int, total: int | None = None, desc: str = "",
-               progress: bool = False, window: int | None = None) -> Iterator[R]:
-    """``func`` over ``items`` on ``workers`` threads, results in input order, streamed.
-
-    At most ``window`` items (default 4 per worker) are taken from ``items`` and not yet handed
-    back, so memory is bounded by the window, not by the number of items: ``items`` may be a lazy
-    iterator and is read only as results are consumed. (``Executor.map``, which
-    :func:`vtgen.imageio.map_images` uses, submits every item at once and keeps a future per item.)
-    If ``func`` raises, the exception is raised here and the items not started are cancelled.
-    Threads suffice: image decoding, resizing and encoding release the GIL.
-    """
-    workers = max(1, int(workers))
-    window = max(workers, window or 4 * workers)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=total, desc=desc, unit="img")
-    pending: deque = deque()
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        try:
-            for item in items:
-                pending.append(pool.submit(func, item))
-                if len(pending) >= window:
-                    yield pending.popleft().result()
-                    if bar is not None:
-                        bar.update()
-            while pending:
-                yield pending.popleft().result()
-                if bar is not None:
-                    bar.update()
-        finally:
-            for future in pending:
-                future.cancel()
-            if bar is not None:
-                bar.close()
 
 
 @dataclass(slots=True)
@@ -219,7 +174,7 @@ def _inspect(candidate: Candidate) -> dict:
     """Decode one candidate fully; return a manifest row or a quarantine row (key 'reason')."""
     try:
         image = read_rgb8(candidate.path)
-        md5 = file_md5(candidate.path, chunk=1 << 16)  # 64 KiB reads: a read(1 MiB) allocates 1 MiB per call
+        md5 = file_md5(candidate.path)
     except ImageError as exc:
         return _quarantine(candidate.path, candidate.cls, candidate.modality, str(exc))
     except OSError as exc:  # gone or unreadable between decoding and hashing

@@ -16,7 +16,7 @@ looks at all of it.
 An image too small for the centre crop (``crop_fraction`` of its shorter side is under one
 pixel) gives no tile; it is listed with the reason under ``skipped`` in ``summary.json``.
 Images are read, cut and written one per worker thread at a time, with at most a few images per
-worker in flight (:func:`vtgen.ingest.stream_map`); the manifest is read row by row and each
+worker in flight (:func:`vtgen.imageio.stream_map`); the manifest is read row by row and each
 image's tiles are written before the next image is read. Only the tile table is kept in memory,
 built column by column: the tile's file name and box, and the position of its manifest row, whose
 text columns are copied once at the end.
@@ -32,8 +32,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from .imageio import ImageError, atomic_output_dir, labelled_sheet, read_rgb8, read_table, write_png
-from .ingest import stream_map
+from .imageio import ImageError, atomic_output_dir, labelled_sheet, read_rgb8, read_table, stream_map, write_png
 from .roi import Box, centre_box, contact_box, cut_tile, cut_tiles_without_markers, remove_markers, tile_boxes
 
 MANIFEST_NEEDS = ["path", "class", "modality", "split", "source", "pair_key"]
