@@ -9,7 +9,7 @@ EXPERIMENTS = list(config["studies"]["experiments"]["runs"])
 STUDY_THREADS = {kind: config["studies"][kind]["base"].get("translation.threads", config["translation"]["threads"])
                  for kind in ("tradeoff", "experiments")}
 STUDY_CODE = ["src/vtgen/studies.py", "src/vtgen/train.py", "src/vtgen/gan.py", "src/vtgen/models.py",
-              "src/vtgen/generate.py", "src/vtgen/score.py", "src/vtgen/classifier.py"]
+              "src/vtgen/generate.py", "src/vtgen/score.py", "src/vtgen/metrics.py", "src/vtgen/classifier.py"]
 
 
 rule tradeoff_setting:
