@@ -1,9 +1,12 @@
 # vtgen workflow. Run from the project root: `snakemake --cores 2` (or `make run`).
-# Every rule runs the same `vtgen <stage>` command as the matching DVC stage in dvc.yaml;
-# rules hold no logic. params.yaml is the one configuration for both tools.
+# The rules are built from the stage table in src/vtgen/pipeline.py, the same table `vtgen workflow`
+# writes dvc.yaml from, so both tools run the same commands on the same inputs and outputs.
+# Each rule's code inputs are the files its stage module imports; params.yaml is the one configuration.
 
 import yaml
-from vtgen.config import validate_params
+from vtgen.io.params import validate_params
+from vtgen.pipeline import snakemake_rule, stages
+from vtgen.runlock import hold_run_lock
 
 configfile: "params.yaml"
 
@@ -16,13 +19,6 @@ if config != yaml.safe_load(open("params.yaml")):
     )
 validate_params(config)
 
-
-include: "workflow/rules/data.smk"
-include: "workflow/rules/translation.smk"
-include: "workflow/rules/evaluation.smk"
-include: "workflow/rules/studies.smk"
-
-
 report: "workflow/report/workflow.rst"
 
 
@@ -30,3 +26,29 @@ rule all:
     default_target: True
     input:
         "reports/index.html",
+
+
+rule studies:
+    """Every study (`snakemake studies`): trade-off, frontier, experiments, stability and their report."""
+    input:
+        "reports/studies/index.html",
+
+
+for _stage in stages(config, "main") + stages(config, "studies"):
+    _spec = snakemake_rule(_stage, config)
+
+    rule:
+        name: _stage.name
+        message: _stage.doc
+        input: _spec["inputs"]
+        output: [directory(p) if p in _spec["directories"] else p for p in _spec["outputs"]]
+        params: **_spec["params"]
+        threads: _spec["threads"]
+        wildcard_constraints: **_spec["constraints"]
+        shell: _spec["command"]
+
+
+# One run at a time per project, Snakemake or DVC: the lock is the kernel's (flock), so a killed run
+# leaves nothing to unlock. Stage commands started by this run inherit the right to run.
+onstart:
+    hold_run_lock("snakemake")

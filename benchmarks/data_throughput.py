@@ -47,7 +47,7 @@ def image_name(i: int) -> str:
 
 def write_vitac_like(root: Path, images: int, seed: int = 0) -> None:
     """``images`` JPEG tiles in ViTac folders (half tactile, half visual) for cloth 1."""
-    from vtgen.synthetic import FABRICS, render_gelsight, render_patch, render_visual
+    from vtgen.core.synthetic import FABRICS, render_gelsight, render_patch, render_visual
 
     rng = np.random.default_rng(seed)
     bases = []
@@ -76,8 +76,8 @@ def max_rss_mb() -> float:
 
 def child(root: Path, work: Path, images: int, workers: int, repeats: int, roi: dict) -> dict:
     """Run in a fresh process: time ingest and ROI on ``root``; return medians and memory."""
-    from vtgen.ingest import ingest_dataset
-    from vtgen.tiling import cut_dataset_tiles
+    from vtgen.stages.ingest import ingest_dataset
+    from vtgen.stages.roi import cut_dataset_tiles
 
     warm = work / "warm"
     link_subset(root, warm / "raw", min(50, images))

@@ -18,9 +18,9 @@ import pandas as pd
 import torch
 import torch.nn.functional as F
 
-from vtgen.config import load_params, model_settings
-from vtgen.gan import to_model_range
-from vtgen.train import load_pair_data, train_translator
+from vtgen.io.params import load_params, model_settings
+from vtgen.core.gan import to_model_range
+from vtgen.stages.train import load_pair_data, train_translator
 
 
 def texture_energy(images: torch.Tensor) -> torch.Tensor:

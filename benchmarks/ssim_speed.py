@@ -52,14 +52,14 @@ import torch
 from scipy.ndimage import gaussian_filter
 from skimage.metrics import structural_similarity
 
-from vtgen import metrics
-from vtgen.metrics import colour_ssim, pairwise_colour_ssim
+from vtgen.core import metrics
+from vtgen.core.metrics import colour_ssim, pairwise_colour_ssim
 
 FIRST_CALL = """
 import time
 import numpy as np
 start = time.perf_counter()
-from vtgen.metrics import colour_ssim
+from vtgen.core.metrics import colour_ssim
 imported = time.perf_counter()
 colour_ssim(np.zeros((1, {size}, {size}, 3), np.uint8), np.full((1, {size}, {size}, 3), 9, np.uint8))
 print(imported - start, time.perf_counter() - imported)

@@ -19,12 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
-from vtgen.config import load_params
-from vtgen.generate import translate
-from vtgen.imageio import read_table
-from vtgen.metrics import colour_ssim
-from vtgen.pairing import DIRECTIONS, PAIR_COLUMNS, SPLIT_COLUMNS
-from vtgen.train import load_pair_data, pairs_in, read_tiles, train_translator
+from vtgen.io.params import load_params
+from vtgen.stages.generate import translate
+from vtgen.io.tables import read_table
+from vtgen.core.metrics import colour_ssim
+from vtgen.core.domain import DIRECTIONS
+from vtgen.io.tables import PAIR_COLUMNS, SPLIT_COLUMNS
+from vtgen.stages.train import load_pair_data, pairs_in, train_translator
+from vtgen.io.images import read_tiles
 
 try:  # run as a script from the repository root or as a module
     from train_speed import settings_for

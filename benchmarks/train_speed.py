@@ -38,10 +38,11 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from vtgen.config import load_params
-from vtgen.gan import adversarial_loss, make_optimizer, random_positioning
-from vtgen.models import UNetGenerator, build_discriminator, conditional_pair, count_parameters
-from vtgen.train import PairData, SpeedChoices, prepare_batch, read_tiles, train_translator
+from vtgen.io.params import load_params
+from vtgen.core.gan import adversarial_loss, make_optimizer, random_positioning
+from vtgen.core.models import build_discriminator, conditional_pair, count_parameters, UNetGenerator
+from vtgen.stages.train import PairData, prepare_batch, SpeedChoices, train_translator
+from vtgen.io.images import read_tiles
 
 NONE = SpeedChoices(fused_optimizer=False, freeze_discriminator=False, channels_last=False, prefetch=False)
 # name -> (precision, SpeedChoices); "reference" is the plain loop of this file

@@ -11,8 +11,9 @@ import torch
 import yaml
 
 from conftest import tiny_params, write_image
-from vtgen.classifier import AlexNet, first_conv, load_weights, make_classifier, train_classifier
-from vtgen.classify import ACCURACY_COLUMNS, SETTINGS, low_data_subset, run_classify
+from vtgen.core.classifier import AlexNet, apply_weights, first_conv, make_classifier, train_classifier
+from vtgen.io.checkpoints import read_state_dict
+from vtgen.stages.classify import ACCURACY_COLUMNS, low_data_subset, run_classify, SETTINGS
 from vtgen.cli import main
 
 TINY = dict(size=32, width=0.125, epochs=3, batch_size=16, lr=0.001)
@@ -99,7 +100,7 @@ def test_load_weights_retrains_only_the_last_layers(tmp_path):
     torch.save(source.state_dict(), tmp_path / "weights.pt")
     saved = {k: v.clone() for k, v in source.state_dict().items()}
     x, y = stripes(8, seed=0)
-    run = train_classifier(x, y, x, y, 3, dict(TINY, epochs=2), seed=0, weights=tmp_path / "weights.pt",
+    run = train_classifier(x, y, x, y, 3, dict(TINY, epochs=2), seed=0, weights=read_state_dict(tmp_path / "weights.pt"),
                            retrain_layers=2)
     assert run.weights == {"reinitialised": ["classifier.fc8.weight", "classifier.fc8.bias"], "trainable": ["fc7", "fc8"]}
     after = run.model.state_dict()
@@ -111,6 +112,10 @@ def test_load_weights_retrains_only_the_last_layers(tmp_path):
     assert after["classifier.fc8.weight"].shape == (3, source.classifier.fc8.in_features)
     trainable = {name for name, p in run.model.named_parameters() if p.requires_grad}
     assert trainable == {"classifier.fc7.weight", "classifier.fc7.bias", "classifier.fc8.weight", "classifier.fc8.bias"}
+
+
+def load_weights(model, path, retrain_layers):
+    return apply_weights(model, read_state_dict(path), retrain_layers, str(path))
 
 
 def test_load_weights_errors_name_the_problem(tmp_path):

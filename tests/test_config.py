@@ -6,7 +6,7 @@ import sys
 import pytest
 import yaml
 
-from vtgen.config import ParamsError, load_params, validate_params
+from vtgen.io.params import load_params, ParamsError, validate_params
 
 
 def test_default_params_are_valid(default_params):

@@ -32,11 +32,11 @@ from PIL import Image
 
 from conftest import tiny_params
 from vtgen import cli
-from vtgen.config import model_settings
-from vtgen.imageio import MAX_PIXELS, ImageError, display_path, read_rgb8
-from vtgen.ingest import IngestError, run_ingest
-from vtgen.models import UNetGenerator
-from vtgen.train import save_generator
+from vtgen.io.params import model_settings
+from vtgen.io.images import display_path, ImageError, MAX_PIXELS, read_rgb8
+from vtgen.stages.ingest import IngestError, run_ingest
+from vtgen.core.models import UNetGenerator
+from vtgen.io.checkpoints import save_generator
 
 # corrupt files make Pillow warn (bad EXIF, decompression bomb) before the reader refuses them
 pytestmark = [pytest.mark.filterwarnings("ignore::UserWarning:PIL"),

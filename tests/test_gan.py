@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from vtgen.gan import adversarial_loss, make_optimizer, noise_margin, random_positioning, to_model_range, to_uint8
+from vtgen.core.gan import adversarial_loss, make_optimizer, noise_margin, random_positioning, to_model_range, to_uint8
 
 
 def test_pixel_scaling_round_trips_every_uint8_value():

@@ -13,9 +13,10 @@ from PIL import Image
 from conftest import TINY_MODEL, tiny_params, write_image
 from test_train import pair_tables
 from vtgen.cli import main
-from vtgen.generate import load_translator, run_generate, select_inputs, translate, translate_files
-from vtgen.models import UNetGenerator
-from vtgen.train import save_generator
+from vtgen.io.checkpoints import load_translator
+from vtgen.stages.generate import run_generate, select_inputs, translate, translate_files
+from vtgen.core.models import UNetGenerator
+from vtgen.io.checkpoints import save_generator
 
 SETTINGS = dict(TINY_MODEL, gan_loss="bce", l1_weight=100.0, optimizer="adam", lr=0.0002, betas=[0.5, 0.999],
                 noise=True)

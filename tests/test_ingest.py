@@ -3,8 +3,8 @@ import pandas as pd
 import pytest
 
 from conftest import random_rgb, write_image
-from vtgen.imageio import ImageError, read_rgb8
-from vtgen.ingest import IngestError, ingest_dataset, run_ingest
+from vtgen.io.images import ImageError, read_rgb8
+from vtgen.stages.ingest import ingest_dataset, IngestError, run_ingest
 
 
 @pytest.fixture
@@ -121,7 +121,7 @@ def test_vitac_sample_is_read_with_its_splits(vitac_root, tmp_path):
 def test_stream_map_reads_items_lazily_and_keeps_a_bounded_window():
     import threading
 
-    from vtgen.imageio import stream_map
+    from vtgen.io.images import stream_map
 
     pulled, lock = [], threading.Lock()
 
@@ -143,7 +143,7 @@ def test_stream_map_reads_items_lazily_and_keeps_a_bounded_window():
 
 
 def test_stream_map_raises_the_first_error_and_cancels_the_rest():
-    from vtgen.imageio import stream_map
+    from vtgen.io.images import stream_map
 
     started = []
 

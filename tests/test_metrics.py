@@ -11,10 +11,8 @@ from hypothesis.extra.numpy import arrays
 from scipy.ndimage import gaussian_filter
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from vtgen import metrics
-from vtgen.metrics import (
-    MS_SSIM_WEIGHTS, colour_ssim, grey_ssim, ms_ssim, ms_ssim_min_size, pairwise_colour_ssim, psnr,
-)
+from vtgen.core import metrics
+from vtgen.core.metrics import colour_ssim, grey_ssim, ms_ssim, ms_ssim_min_size, MS_SSIM_WEIGHTS, pairwise_colour_ssim, psnr
 
 C1_255 = (0.01 * 255) ** 2
 LUMA = np.array([0.299, 0.587, 0.114])

@@ -6,15 +6,7 @@ import pytest
 import torch
 from torch import nn
 
-from vtgen.models import (
-    GlobalDiscriminator,
-    PatchDiscriminator,
-    UNetGenerator,
-    build_discriminator,
-    conditional_pair,
-    count_parameters,
-    unet_depth,
-)
+from vtgen.core.models import build_discriminator, conditional_pair, count_parameters, GlobalDiscriminator, PatchDiscriminator, unet_depth, UNetGenerator
 
 
 def rand_images(n: int, size: int, channels: int = 3, seed: int = 0) -> torch.Tensor:

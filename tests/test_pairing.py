@@ -3,7 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vtgen.pairing import assign_splits, build_pairs, leaked_sources
+from vtgen.stages.pairs import assign_splits, build_pairs, leaked_sources
 
 
 def make_tiles(spec, aligned=True, tiles_per_image=2, fixed=None):

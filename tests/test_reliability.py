@@ -27,7 +27,7 @@ import yaml
 
 from conftest import ENV, REPO, make_project, run, tiny_params
 from vtgen import cli
-from vtgen.imageio import OutputDirError, atomic_output_dir, describe_os_error
+from vtgen.io.images import atomic_output_dir, describe_os_error, OutputDirError
 
 pytestmark = pytest.mark.e2e
 

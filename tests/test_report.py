@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from conftest import REPO
-from vtgen.report import PAPER, accuracy_table, markdown_table, ssim_tables
+from vtgen.stages.report import accuracy_table, markdown_table, PAPER, ssim_tables
 
 pytestmark = pytest.mark.e2e
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")

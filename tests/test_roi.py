@@ -14,10 +14,7 @@ from PIL import Image
 
 from skimage.filters import threshold_otsu
 
-from vtgen.roi import (
-    Box, _close_ellipse, centre_box, contact_box, cut_tile, cut_tiles_without_markers, marker_mask, remove_markers,
-    tile_boxes,
-)
+from vtgen.core.roi import _close_ellipse, Box, centre_box, contact_box, cut_tile, cut_tiles_without_markers, marker_mask, remove_markers, tile_boxes
 
 DATA = Path(__file__).resolve().parents[2] / "shared/data/vitac_cloth11"
 TACTILE = sorted((DATA / "11t").glob("*.jpg")) + sorted((DATA / "11t_test").glob("*.jpg"))
@@ -281,7 +278,7 @@ def direct_marker_mask(frame: np.ndarray, max_dot: int | None = None) -> np.ndar
 
 def rendered_gelsight(seed: int, size: int = 256) -> np.ndarray:
     """A GelSight frame from vtgen.synthetic (markers on a rendered fabric), through JPEG like the ViTac tiles."""
-    from vtgen.synthetic import FABRICS, render_gelsight, render_patch
+    from vtgen.core.synthetic import FABRICS, render_gelsight, render_patch
 
     rng = np.random.default_rng(seed)
     frame = render_gelsight(render_patch(FABRICS[seed % len(FABRICS)], size, rng), rng)
@@ -339,7 +336,7 @@ SHRINKING = [("centre", 0.5, 64, 1.0, 0.5), ("tiles", 0.5, 64, 1.0, 0.5), ("cent
 
 def check_fast_tiles(frames: list[np.ndarray], visual_crop: str, fraction: float, size: int, tolerance: float,
                      mean_tolerance: float):
-    from vtgen.tiling import crop_boxes
+    from vtgen.stages.roi import crop_boxes
 
     differences, raw_differences = [], []
     for frame in frames:
@@ -436,8 +433,8 @@ def test_roi_stage_cuts_marker_free_tiles_from_full_frames(tmp_path):
     """The ROI stage with the main job's settings (full frame, centre crop 0.5, remove_markers) uses the fast path."""
     import pandas as pd
 
-    from vtgen.imageio import read_rgb8
-    from vtgen.tiling import cut_dataset_tiles
+    from vtgen.io.images import read_rgb8
+    from vtgen.stages.roi import cut_dataset_tiles
 
     paths = TACTILE[:4]
     manifest = pd.DataFrame({"path": [str(p) for p in paths], "class": "11", "modality": "tactile", "split": "train",
@@ -517,8 +514,8 @@ def test_roi_stage_memory_grows_with_the_tile_table_not_with_pixels(tmp_path):
     import tracemalloc
 
     from test_ingest import write_jpegs
-    from vtgen.ingest import ingest_dataset
-    from vtgen.tiling import cut_dataset_tiles
+    from vtgen.stages.ingest import ingest_dataset
+    from vtgen.stages.roi import cut_dataset_tiles
 
     side, n = 96, 60
     roi = {"size": 32, "tactile_box": "full", "remove_markers": False, "visual_crop": "centre", "crop_fraction": 1.0}

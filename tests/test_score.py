@@ -9,8 +9,9 @@ import pytest
 import torch
 from PIL import Image
 
-from vtgen.metrics import pairwise_colour_ssim
-from vtgen.score import CANDIDATES, by_class, reference_candidates, run_score
+from vtgen.core.metrics import pairwise_colour_ssim
+from vtgen.io.tables import CANDIDATES
+from vtgen.stages.score import by_class, reference_candidates, run_score
 
 CLASSES = ["felt", "denim"]
 

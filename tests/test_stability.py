@@ -10,12 +10,12 @@ import pytest
 import torch
 from torch import nn
 
-import vtgen.stability as stability
+import vtgen.studies.stability as stability
 from conftest import tiny_params, write_image
-from vtgen.gan import to_model_range
-from vtgen.models import GlobalDiscriminator, PatchDiscriminator, UNetGenerator
-from vtgen.stability import EDGE_CASES, run_case, write_stability
-from vtgen.train import TrainingDiverged, run_train
+from vtgen.core.gan import to_model_range
+from vtgen.core.models import GlobalDiscriminator, PatchDiscriminator, UNetGenerator
+from vtgen.studies.stability import EDGE_CASES, run_case, write_stability
+from vtgen.stages.train import run_train, TrainingDiverged
 
 ITERATIONS = 2  # per case; enough to take every optimiser step path, cheap on 2 shared cores
 # bf16 against fp32 after ITERATIONS steps from one seed, eval-mode outputs on [-1, 1] (fast preset, this CPU):

@@ -11,8 +11,8 @@ import pytest
 import yaml
 from conftest import make_project, run, tiny_params
 
-from vtgen.config import ParamsError, validate_params
-from vtgen.studies import apply_overrides, choose_capacity, dvc_queue_command, is_default, pareto_front, variant_overrides
+from vtgen.io.params import ParamsError, validate_params
+from vtgen.studies.study import apply_overrides, choose_capacity, dvc_queue_command, is_default, pareto_front, variant_overrides
 
 
 def test_overrides_set_existing_keys_and_resolve_the_preset_alias(default_params):

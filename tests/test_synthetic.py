@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from vtgen.synthetic import FABRICS, Patch, render_dataset, render_gelsight, render_patch, render_visual
+from vtgen.core.synthetic import FABRICS, Patch, render_gelsight, render_patch, render_visual
+from vtgen.stages.render import render_dataset
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "vitac_cloth11"
 

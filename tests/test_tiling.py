@@ -3,10 +3,10 @@ import pandas as pd
 import pytest
 
 from conftest import random_rgb, write_image
-from vtgen.imageio import atomic_output_dir, read_rgb8
-from vtgen.ingest import ingest_dataset
-from vtgen.roi import Box
-from vtgen.tiling import crop_boxes, cut_dataset_tiles, run_roi, tactile_region
+from vtgen.io.images import atomic_output_dir, read_rgb8
+from vtgen.stages.ingest import ingest_dataset
+from vtgen.core.roi import Box
+from vtgen.stages.roi import crop_boxes, cut_dataset_tiles, run_roi, tactile_region
 
 ROI = {"size": 16, "tactile_box": "full", "remove_markers": False, "visual_crop": "centre", "crop_fraction": 1.0}
 

@@ -9,11 +9,11 @@ import pandas as pd
 import pytest
 import torch
 
-import vtgen.train as train_module
+import vtgen.stages.train as train_module
 from conftest import TINY_MODEL, write_image
-from vtgen.gan import random_positioning, to_model_range
-from vtgen.train import (BatchStream, PairData, SpeedChoices, TrainingDiverged, draw_batch, load_pair_data,
-                         prepare_batch, read_tiles, run_train, train_translator)
+from vtgen.core.gan import random_positioning, to_model_range
+from vtgen.stages.train import BatchStream, draw_batch, load_pair_data, PairData, prepare_batch, run_train, SpeedChoices, train_translator, TrainingDiverged
+from vtgen.io.images import read_tiles
 
 SETTINGS = dict(TINY_MODEL, gan_loss="bce", l1_weight=100.0, optimizer="adam", lr=0.0002, betas=[0.5, 0.999],
                 noise=True)

@@ -5,21 +5,27 @@ Snakemake rules and DVC stages run exactly these commands, e.g.
 params.yaml, reads only the inputs named on its command line and writes one output folder
 atomically. Errors are reported in one line naming the file and the problem; set
 ``VTGEN_DEBUG=1`` for a traceback.
+
+Pipeline stages take the project's run lock (:mod:`vtgen.runlock`) and record their wall time in
+``timing.json`` inside their output folder, where the report finds the timings of the very
+outputs it reports.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
+import time
 from pathlib import Path
 
-from .config import ParamsError, load_params
-from .pairing import DIRECTIONS
+from vtgen.core.domain import DIRECTIONS
+from vtgen.io.params import ParamsError, load_params
 
 
 def _render(args, params) -> None:
-    from .synthetic import render_dataset
+    from vtgen.stages.render import render_dataset
 
     cfg = params["synthetic"]
     info = render_dataset(Path(args.out), cfg["classes"], cfg["samples_per_class"], cfg["size"],
@@ -29,89 +35,101 @@ def _render(args, params) -> None:
 
 
 def _ingest(args, params) -> None:
-    from .ingest import run_ingest
+    from vtgen.stages.ingest import run_ingest
 
     run_ingest(params["dataset"]["path"], params["dataset"]["source"], args.out, params["ingest"]["workers"])
 
 
 def _roi(args, params) -> None:
-    from .tiling import run_roi
+    from vtgen.stages.roi import run_roi
 
     run_roi(args.manifest, params["roi"], args.out, params["ingest"]["workers"])
 
 
 def _pairs(args, params) -> None:
-    from .pairing import run_pairing
+    from vtgen.stages.pairs import run_pairing
 
     run_pairing(args.tiles, params["pairing"], args.out)
 
 
 def _train(args, params) -> None:
-    from .train import run_train
+    from vtgen.stages.train import run_train
 
     run_train(params, args.direction, args.scope, args.pairs, args.out, args.checkpoints)
 
 
 def _generate(args, params) -> None:
-    from .generate import run_generate
+    from vtgen.stages.generate import run_generate
 
     run_generate(params, args.direction, args.pairs, args.models, args.out)
 
 
 def _translate(args, params) -> None:
-    from .generate import translate_files
+    from vtgen.stages.generate import translate_files
 
     translate_files(args.model, args.inputs, args.out, params["translation"]["device"] if params else "cpu",
                     args.direction)
 
 
 def _score(args, params) -> None:
-    from .score import run_score
+    from vtgen.stages.score import run_score
 
     run_score(params, args.pairs, args.generated, args.out)
 
 
 def _classify(args, params) -> None:
-    from .classify import run_classify
+    from vtgen.stages.classify import run_classify
 
     run_classify(params, args.modality, args.pairs, args.generated, args.out)
 
 
 def _report(args, params) -> None:
-    from .report import run_report
+    from vtgen.stages.report import run_report
 
-    run_report(params, args.out)
+    run_report(params, args.ingest, args.pairs, args.models, args.generated, args.scores, args.classify, args.out)
 
 
 def _study(args, params) -> None:
-    from .studies import run_variant
+    from vtgen.studies.study import run_variant
 
     run_variant(params, args.kind, args.name, args.out, args.pairs, args.capacity)
 
 
 def _frontier(args, params) -> None:
-    from .studies import summarise_tradeoff
+    from vtgen.studies.study import summarise_tradeoff
 
     summarise_tradeoff(params, args.runs, args.out)
 
 
 def _stability(args, params) -> None:
-    from .stability import run_stability, write_stability
+    from vtgen.studies.stability import run_stability, write_stability
 
     write_stability(run_stability(params, args.iterations), args.out)
 
 
 def _studies_report(args, params) -> None:
-    from .studies_report import run_studies_report
+    from vtgen.studies.report import run_studies_report
 
     run_studies_report(params, args.experiments, args.frontier, args.stability, args.out)
+
+
+def _workflow(args, params) -> None:
+    from vtgen.pipeline import DVC_FILES, write_dvc_files
+
+    changed = write_dvc_files(params, Path.cwd(), check=args.check)
+    if args.check and changed:
+        raise ValueError(f"{', '.join(map(str, changed))} differ from the stage table in src/vtgen/pipeline.py; "
+                         f"run `vtgen workflow` to write them")
+    verb = "would change" if args.check else "written"
+    print(f"workflow: {', '.join(map(str, changed)) or 'nothing'} {verb if changed else 'to change'} "
+          f"({', '.join(map(str, DVC_FILES.values()))} follow the stage table)")
 
 
 def _experiments(args, params) -> None:
     import shlex
     import subprocess
 
-    from .studies import dvc_queue_command
+    from vtgen.studies.study import dvc_queue_command
 
     for name, experiment in params["studies"]["experiments"]["runs"].items():
         command = dvc_queue_command(params, name)
@@ -160,7 +178,11 @@ def build_parser() -> argparse.ArgumentParser:
     classify.add_argument("--modality", required=True, choices=["visual", "tactile"])
     classify.add_argument("--pairs", required=True, help="folder written by the pairs stage")
     classify.add_argument("--generated", required=True, help="folder holding one generate output per direction")
-    stage("report", _report, "build reports/index.html, summary.md, metrics.json and figures from the run's outputs")
+    report = stage("report", _report, "build reports/index.html, summary.md, metrics.json, plots and figures")
+    for name, what in (("ingest", "the ingest stage's folder"), ("pairs", "the pairs stage's folder"),
+                       ("models", "folder of models/<direction>/<scope>"), ("generated", "folder of generate outputs"),
+                       ("scores", "the score stage's folder"), ("classify", "folder of classify/<modality> outputs")):
+        report.add_argument(f"--{name}", required=True, help=what)
     study = stage("study", _study, "run one experiment or trade-off setting of params.yaml's studies section")
     study.add_argument("--kind", required=True, choices=["experiments", "tradeoff"])
     study.add_argument("--name", required=True, help="a name under studies.experiments.runs or studies.tradeoff.settings")
@@ -174,6 +196,10 @@ def build_parser() -> argparse.ArgumentParser:
     studies_report.add_argument("--experiments", required=True, help="folder of `vtgen study --kind experiments` outputs")
     studies_report.add_argument("--frontier", required=True, help="folder written by `vtgen frontier`")
     studies_report.add_argument("--stability", required=True, help="folder written by `vtgen stability`")
+    workflow = sub.add_parser("workflow", help="write dvc.yaml and workflow/studies/dvc.yaml from the stage table")
+    workflow.add_argument("--params", default="params.yaml")
+    workflow.add_argument("--check", action="store_true", help="only check that the files match; exit 2 if not")
+    workflow.set_defaults(func=_workflow)
     experiments = sub.add_parser("experiments", help="print (or queue) the DVC experiments of studies.experiments")
     experiments.add_argument("--params", default="params.yaml")
     experiments.add_argument("--queue", action="store_true", help="run `dvc exp run --queue` for each")
@@ -188,11 +214,34 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+PIPELINE_COMMANDS = {"render", "ingest", "roi", "pairs", "train", "generate", "score", "classify", "report", "study",
+                     "frontier", "stability", "studies-report"}
+
+
+def debugging() -> bool:
+    """VTGEN_DEBUG=1 (or true, yes, on) shows tracebacks; unset, empty, 0, false, no or off do not."""
+    return os.environ.get("VTGEN_DEBUG", "").strip().lower() in ("1", "true", "yes", "on")
+
+
+def run_stage(args, params) -> None:
+    """Run a pipeline stage under the project's run lock and write its wall time into its output folder."""
+    from vtgen.runlock import run_lock
+
+    started = time.perf_counter()
+    with run_lock(f"vtgen {args.stage}"):
+        args.func(args, params)
+    out = Path(args.out)
+    if out.is_dir():
+        record = {"stage": args.stage, "seconds": round(time.perf_counter() - started, 2),
+                  "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
+        (out / "timing.json").write_text(json.dumps(record) + "\n")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     import traceback
 
-    from .imageio import describe_os_error, display_path
+    from vtgen.io.images import describe_os_error, display_path
 
     def fail(message: str, code: int = 2) -> int:
         print(f"vtgen {args.stage}: error: {message}", file=sys.stderr)
@@ -203,12 +252,15 @@ def main(argv: list[str] | None = None) -> int:
             params = load_params(args.params) if args.params else None
         except UnicodeDecodeError as exc:
             raise ParamsError(f"{args.params}: not UTF-8 text ({exc.reason} at byte {exc.start})") from exc
-        args.func(args, params)
+        if args.stage in PIPELINE_COMMANDS:
+            run_stage(args, params)
+        else:
+            args.func(args, params)
     except KeyboardInterrupt:
         print(f"vtgen {args.stage}: interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # noqa: BLE001 - every failure ends in one line; VTGEN_DEBUG=1 shows the traceback
-        if os.environ.get("VTGEN_DEBUG"):
+        if debugging():
             raise
         # bad input, bad configuration, a full disk or an unwritable folder: exit code 2
         if isinstance(exc, OSError):

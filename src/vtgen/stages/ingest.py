@@ -32,16 +32,10 @@ from pathlib import Path
 
 import pandas as pd
 
-from .imageio import (IMAGE_EXTENSIONS, ImageError, atomic_output_dir, check_output_dir, display_path, file_md5, is_utf8_path,
-                      read_rgb8, stream_map)
+from vtgen.io.images import atomic_output_dir, check_output_dir, display_path, file_md5, IMAGE_EXTENSIONS, ImageError, is_utf8_path, read_rgb8, stream_map
+from vtgen.io.tables import MANIFEST_COLUMNS, QUARANTINE_COLUMNS
 
 MODALITIES = ("visual", "tactile")
-MANIFEST_COLUMNS = [
-    "path", "md5", "modality", "class", "split", "source", "pair_key",
-    "width", "height", "channels", "bit_depth", "note",
-]
-QUARANTINE_COLUMNS = ["path", "class", "modality", "reason"]
-
 _VITAC_FOLDER = re.compile(r"^(?P<cloth>\d+)(?P<mod>[tv])(?P<test>_test)?$")
 _VITAC_TACTILE = re.compile(r"^(?P<frame>\d+)_(?P<tile>\d+)$")
 _VITAC_VISUAL = re.compile(r"^IMG_(?P<photo>\d+)_(?P<tile>\d+)$")

@@ -1,6 +1,6 @@
 """Load and validate params.yaml, the one configuration shared by Snakemake and DVC.
 
-The schema lives in ``workflow/schemas/params.schema.yaml``; every key is required and
+The schema is ``params.schema.yaml`` beside this module (package data); every key is required and
 unknown keys are refused, so a typo stops a run at start with the key named.
 """
 
@@ -14,11 +14,8 @@ from typing import Any
 import jsonschema
 import yaml
 
-PROJECT_ROOT = Path(__file__).resolve().parents[2]
-SCHEMA_PATH = PROJECT_ROOT / "workflow" / "schemas" / "params.schema.yaml"
+SCHEMA_PATH = Path(__file__).with_name("params.schema.yaml")  # package data: ships with every install
 SYNTHETIC_PATH = "data/raw/synthetic"
-# direction -> (input modality, output modality); here, not in pairing, so the Snakefile imports no pandas
-DIRECTIONS = {"v2t": ("visual", "tactile"), "t2v": ("tactile", "visual")}
 
 
 class ParamsError(ValueError):

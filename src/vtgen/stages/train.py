@@ -13,7 +13,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
-import os
 import queue
 import threading
 import time
@@ -24,14 +23,18 @@ import numpy as np
 import pandas as pd
 import torch
 import torch.nn.functional as F
-from PIL import Image
 from tqdm import tqdm
 
-from .config import model_settings
-from .gan import adversarial_loss, make_optimizer, random_positioning, to_model_range
-from .imageio import atomic_output_dir, read_table
-from .models import UNetGenerator, build_discriminator, conditional_pair, count_parameters
-from .pairing import DIRECTIONS, PAIR_COLUMNS, SPLIT_COLUMNS
+from vtgen.io.params import model_settings
+from vtgen.core.gan import adversarial_loss, make_optimizer, random_positioning, to_model_range
+from vtgen.io.images import atomic_output_dir
+from vtgen.io.tables import read_table
+from vtgen.core.models import build_discriminator, conditional_pair, count_parameters, UNetGenerator
+from vtgen.core.domain import DIRECTIONS
+from vtgen.io.tables import PAIR_COLUMNS, SPLIT_COLUMNS
+from vtgen.io.images import read_tiles
+from vtgen.core.device import resolve_device
+from vtgen.io.checkpoints import save_atomic, save_generator
 
 LOSS_NAMES = ("loss_d", "loss_g_gan", "loss_g_l1")
 CHECKPOINT_NAME = "last.pt"
@@ -63,24 +66,6 @@ class PairData:
             digest.update(tensor.numpy().tobytes())
         digest.update(json.dumps(self.classes).encode())
         return digest.hexdigest()
-
-
-def read_tiles(paths: list[str], size: int, root: Path = Path(".")) -> torch.Tensor:
-    """Read 8-bit RGB tiles into a uint8 N x 3 x size x size tensor, resizing (area/bilinear) when needed."""
-    if not paths:
-        return torch.zeros((0, 3, size, size), dtype=torch.uint8)
-    arrays = []
-    for path in paths:
-        with Image.open(root / path) as image:
-            if image.mode != "RGB":
-                raise ValueError(f"{path}: tile is {image.mode}, expected 8-bit RGB (rerun the roi stage)")
-            arrays.append(np.asarray(image))
-    batch = torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous()
-    if batch.shape[-1] != size or batch.shape[-2] != size:
-        batch = F.interpolate(batch.float(), size=(size, size), mode="area" if batch.shape[-1] > size else "bilinear",
-                              align_corners=None if batch.shape[-1] > size else False)
-        batch = batch.round().clamp(0, 255).to(torch.uint8)
-    return batch
 
 
 def pairs_in(pairs: pd.DataFrame, split: str, scope: str) -> pd.DataFrame:
@@ -228,15 +213,6 @@ class BatchStream:
             self._thread.join()
 
 
-def resolve_device(name: str) -> torch.device:
-    """auto -> CUDA when available else CPU; cuda without a GPU is an error, not a silent fallback."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError("translation.device is 'cuda' but torch sees no CUDA device (use auto or cpu)")
-    return torch.device(name)
-
-
 def _non_finite_tensors(*modules: torch.nn.Module) -> list[str]:
     """Names of the floating state tensors (weights, BatchNorm running statistics) holding NaN or inf."""
     return [f"{type(m).__name__}.{name}" for m in modules for name, t in m.state_dict().items()
@@ -245,18 +221,6 @@ def _non_finite_tensors(*modules: torch.nn.Module) -> list[str]:
 
 def _describe(bad: list[str]) -> str:
     return ", ".join(bad[:3]) + (f" and {len(bad) - 3} more" if len(bad) > 3 else "")
-
-
-def _save_atomic(obj, path: Path) -> None:
-    """torch.save to a temporary sibling, then rename. Saving through a file object lets a full disk
-    surface as OSError(ENOSPC) naming the file (torch.save to a path hides it in a RuntimeError)."""
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        with open(tmp, "wb") as handle:
-            torch.save(obj, handle)
-    except OSError as exc:
-        raise OSError(exc.errno, exc.strerror, str(tmp)) from exc
-    os.replace(tmp, path)
 
 
 def _config_fingerprint(settings: dict, run: dict, direction: str, scope: str, data_hash: str) -> str:
@@ -363,7 +327,7 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
             raise TrainingDiverged(f"{direction}/{scope}: non-finite weights at step {at_step} ({_describe(bad)}); "
                                    f"checkpoint not written; {last_good()}")
         checkpoint_dir.mkdir(parents=True, exist_ok=True)
-        _save_atomic({
+        save_atomic({
             "fingerprint": fingerprint, "step": at_step, "history": history, "seconds": elapsed,
             "generator": generator.state_dict(), "discriminator": discriminator.state_dict(),
             "opt_g": opt_g.state_dict(), "opt_d": opt_d.state_dict(),
@@ -447,13 +411,6 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
     seconds = seconds_before + time.perf_counter() - started
     return TrainResult(generator.cpu().to(memory_format=torch.contiguous_format), history, step, seconds,
                        resumed_from, str(device))
-
-
-def save_generator(path: Path, generator: UNetGenerator, settings: dict, direction: str, scope: str) -> None:
-    """The file `vtgen generate` and `vtgen translate` load: weights plus what is needed to rebuild the network."""
-    source_mod, target_mod = DIRECTIONS[direction]
-    _save_atomic({"state_dict": generator.state_dict(), "settings": settings, "direction": direction, "scope": scope,
-                  "input_modality": source_mod, "output_modality": target_mod}, path)
 
 
 def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, out_dir: str | Path,

@@ -29,11 +29,15 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from .classifier import train_classifier
-from .generate import GENERATED_COLUMNS
-from .imageio import atomic_output_dir, read_table
-from .pairing import DIRECTIONS, SPLIT_COLUMNS
-from .train import read_tiles, resolve_device
+from vtgen.core.classifier import train_classifier
+from vtgen.io.checkpoints import read_state_dict
+from vtgen.io.tables import GENERATED_COLUMNS
+from vtgen.io.images import atomic_output_dir
+from vtgen.io.tables import read_table
+from vtgen.core.domain import DIRECTIONS
+from vtgen.io.tables import SPLIT_COLUMNS
+from vtgen.io.images import read_tiles
+from vtgen.core.device import resolve_device
 
 SETTINGS = ("real", "real+generated", "low-data real", "low-data real+generated")
 ACCURACY_COLUMNS = {
@@ -231,9 +235,10 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
         summary["notes"].append(f"no real test tiles of {modality}: test accuracy is NaN")
 
     device = resolve_device(params["translation"]["device"])
-    weights = cfg["weights"] or None
-    if weights and not Path(weights).is_file():
-        raise ValueError(f"{weights}: weights file not found (classify.weights; \"\" trains from scratch)")
+    weights_file = cfg["weights"] or None
+    if weights_file and not Path(weights_file).is_file():
+        raise ValueError(f"{weights_file}: weights file not found (classify.weights; \"\" trains from scratch)")
+    weights = read_state_dict(weights_file) if weights_file else None
     rows = []
     bar = tqdm(total=len(settings) * len(cfg["seeds"]), desc=f"classify {modality}", unit="run", disable=not progress,
                dynamic_ncols=True)
@@ -253,7 +258,7 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
                                 refresh=True)
 
             run = train_classifier(x, y, test_x, test_y, len(classes), cfg, seed, device, extra_eval=extra,
-                                   weights=weights, retrain_layers=cfg["retrain_layers"], progress=show)
+                                   weights=weights, weights_source=str(weights_file), retrain_layers=cfg["retrain_layers"], progress=show)
             gan = run.extra_accuracy.get("gan_test", [math.nan] * len(run.test_accuracy))
             for epoch, (acc, gan_acc) in enumerate(zip(run.test_accuracy, gan), start=1):
                 rows.append({"modality": modality, "setting": setting, "seed": seed, "epoch": epoch,

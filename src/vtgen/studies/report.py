@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from .report import PAPER, STYLE, _Page
-from .studies import variant_overrides
+from vtgen.stages.report import _Page, PAPER, STYLE
+from vtgen.studies.study import variant_overrides
 
 REFERENCES = {"real_train": "real vs real (set)", "nearest_neighbour": "nearest neighbour",
               "mean_image": "mean image", "flat_mean_colour": "flat colour"}

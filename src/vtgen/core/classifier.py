@@ -16,7 +16,7 @@ two changes for training from scratch on small tiles:
 
 Networks take raw uint8 ``N x 3 x H x W`` tiles and scale them to [-1, 1] themselves.
 :func:`train_classifier` trains one from a seed and records test accuracy after every epoch;
-:func:`load_weights` starts from a user's state_dict with only the last linear layers trained.
+:func:`apply_weights` starts from a user's state_dict with only the last linear layers trained.
 """
 
 from __future__ import annotations
@@ -26,7 +26,6 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import torch
 import torch.nn.functional as F
@@ -120,35 +119,22 @@ def make_classifier(num_classes: int, settings: Mapping, seed: int) -> AlexNet:
         return AlexNet(num_classes, settings["size"], settings["width"])
 
 
-def load_weights(model: AlexNet, path: str | Path, retrain_layers: int) -> dict:
-    """Load a state_dict file into ``model`` and leave only its last ``retrain_layers`` linear layers trainable.
-
-    The file holds ``torch.save(model.state_dict())`` of this architecture (or a dict with it under
-    ``state_dict``). An fc8 for another number of classes is not loaded: the model keeps its own
+def apply_weights(model: AlexNet, state: Mapping, retrain_layers: int, source: str = "weights") -> dict:
+    """Load ``state`` (a state_dict of this architecture, read from ``source``) into ``model`` and leave
+    only its last ``retrain_layers`` linear layers trainable. An fc8 for another number of classes is not loaded: the model keeps its own
     freshly initialised fc8. Any other missing, extra or differently shaped entry is a ValueError
     naming the first such key. Returns ``{"reinitialised": [...], "trainable": [...]}``.
     """
     if isinstance(retrain_layers, bool) or retrain_layers not in range(1, len(LINEAR_LAYERS) + 1):
         raise ValueError(f"retrain_layers must be 1 to {len(LINEAR_LAYERS)}, got {retrain_layers!r}")
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"{path}: weights file not found")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises pickle, runtime and zip errors alike for a file it cannot read
-        raise ValueError(f"{path}: not a torch state_dict file ({type(exc).__name__}: {exc})") from exc
-    if isinstance(state, Mapping) and isinstance(state.get("state_dict"), Mapping):
-        state = state["state_dict"]
-    if not isinstance(state, Mapping) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-        raise ValueError(f"{path}: expected a state_dict (a mapping of names to tensors), got {type(state).__name__}")
     own = model.state_dict()
     missing = [key for key in own if key not in state]
     if missing:
-        raise ValueError(f"{path}: key {missing[0]} is missing from the file ({len(missing)} missing); "
+        raise ValueError(f"{source}: key {missing[0]} is missing from the file ({len(missing)} missing); "
                          f"it does not hold this architecture")
     extra = [key for key in state if key not in own]
     if extra:
-        raise ValueError(f"{path}: key {extra[0]} in the file is not in the model ({len(extra)} extra); "
+        raise ValueError(f"{source}: key {extra[0]} in the file is not in the model ({len(extra)} extra); "
                          f"it does not hold this architecture")
     merged, reinitialised = dict(own), []
     last = f"classifier.{LINEAR_LAYERS[-1]}."
@@ -159,7 +145,7 @@ def load_weights(model: AlexNet, path: str | Path, retrain_layers: int) -> dict:
         elif key.startswith(last) and given.shape[1:] == tensor.shape[1:]:
             reinitialised.append(key)  # another number of classes: keep the model's own fresh fc8
         else:
-            raise ValueError(f"{path}: key {key} has shape {tuple(given.shape)} in the file but "
+            raise ValueError(f"{source}: key {key} has shape {tuple(given.shape)} in the file but "
                              f"{tuple(tensor.shape)} in the model (check classify.size and classify.width)")
     model.load_state_dict(merged)
     for parameter in model.parameters():
@@ -242,7 +228,7 @@ def refresh_norm_statistics(model: AlexNet, images: torch.Tensor, batch_size: in
 def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch.Tensor, test_y: torch.Tensor,
                      num_classes: int, settings: Mapping, seed: int, device: str | torch.device = "cpu",
                      extra_eval: Mapping[str, tuple[torch.Tensor, torch.Tensor]] | None = None,
-                     weights: str | Path | None = None, retrain_layers: int = 2,
+                     weights: Mapping | None = None, retrain_layers: int = 2, weights_source: str = "weights",
                      progress: Callable[[int, dict], None] | None = None) -> ClassifierRun:
     """Train :func:`make_classifier` (``settings``: size, width, epochs, batch_size, lr; optional flip, default True).
 
@@ -252,7 +238,7 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
     with probability 1/2. After every epoch the model is evaluated (eval mode, no grad) on the
     test set and on each ``extra_eval`` set, and ``progress(epoch, row)`` is called. Everything
     random derives from ``seed`` (the caller's global RNG state is left untouched), so on CPU the
-    same seed gives identical accuracies. ``weights`` starts from a file via :func:`load_weights`.
+    same seed gives identical accuracies. ``weights`` (a state_dict read from ``weights_source``) is applied with :func:`apply_weights`.
     """
     if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 2:
         raise ValueError(f"classification needs at least 2 classes, got {num_classes!r}")
@@ -268,7 +254,7 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
     flip = bool(settings.get("flip", True))
 
     model = make_classifier(num_classes, settings, seed)
-    loaded = load_weights(model, weights, retrain_layers) if weights else None
+    loaded = apply_weights(model, weights, retrain_layers, weights_source) if weights is not None else None
     model.to(device)
     optimiser = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=settings["lr"])
     images, labels = train_x.to(device), train_y.long().to(device)

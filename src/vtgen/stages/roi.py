@@ -32,16 +32,12 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from .imageio import ImageError, atomic_output_dir, labelled_sheet, read_rgb8, read_table, stream_map, write_png
-from .roi import Box, centre_box, contact_box, cut_tile, cut_tiles_without_markers, remove_markers, tile_boxes
+from vtgen.io.images import atomic_output_dir, ImageError, labelled_sheet, read_rgb8, stream_map, write_png
+from vtgen.io.tables import read_table
+from vtgen.core.roi import Box, centre_box, contact_box, cut_tile, cut_tiles_without_markers, remove_markers, tile_boxes
+from vtgen.io.tables import TILE_COLUMNS
 
 MANIFEST_NEEDS = ["path", "class", "modality", "split", "source", "pair_key"]
-TILE_COLUMNS = [
-    "tile_path", "image_path", "class", "modality", "split", "source", "pair_key", "tile_index",
-    "box_x", "box_y", "box_w", "box_h",
-]
-
-
 def tactile_region(frame, tactile_box) -> Box:
     """The part of a GelSight frame in contact: detected, the full frame, or a fixed box."""
     height, width = frame.shape[:2]

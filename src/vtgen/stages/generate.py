@@ -9,7 +9,6 @@ aligned view, its ground truth. ``translate_files`` serves any image or folder a
 from __future__ import annotations
 
 import json
-import pickle
 from pathlib import Path
 
 import numpy as np
@@ -18,35 +17,17 @@ import torch
 from PIL import Image
 from tqdm import tqdm
 
-from .gan import to_model_range, to_uint8
-from .imageio import atomic_output_dir, labelled_sheet, read_table, write_png
-from .models import UNetGenerator
-from .pairing import DIRECTIONS, PAIR_COLUMNS, SPLIT_COLUMNS
-from .train import read_tiles, resolve_device
+from vtgen.core.gan import to_model_range, to_uint8
+from vtgen.io.images import atomic_output_dir, labelled_sheet, write_png
+from vtgen.io.tables import read_table
+from vtgen.core.models import UNetGenerator
+from vtgen.core.domain import DIRECTIONS
+from vtgen.io.tables import PAIR_COLUMNS, SPLIT_COLUMNS
+from vtgen.io.images import read_tiles
+from vtgen.io.tables import GENERATED_COLUMNS
+from vtgen.io.checkpoints import load_translator
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".npy"}
-GENERATED_COLUMNS = ["direction", "scope", "split", "class", "input_path", "output_path", "ground_truth_path", "model"]
-
-
-def load_translator(model: str | Path, device: str = "cpu") -> tuple[UNetGenerator, dict]:
-    """Load a generator written by the train stage (its folder or its generator.pt), in eval mode."""
-    path = Path(model)
-    if path.is_dir():
-        path = path / "generator.pt"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no trained generator here (run the train stage first)")
-    try:
-        saved = torch.load(path, map_location="cpu", weights_only=False)
-        settings = saved["settings"]
-        generator = UNetGenerator(settings["size"], settings["ngf"], settings["kernel"])
-        generator.load_state_dict(saved["state_dict"])
-    except (KeyError, TypeError, RuntimeError, EOFError, OSError, pickle.UnpicklingError) as exc:
-        raise ValueError(f"{path}: not a vtgen generator checkpoint ({exc})") from exc
-    meta = {k: saved[k] for k in ("direction", "scope", "input_modality", "output_modality")}
-    meta["size"], meta["path"] = settings["size"], str(path)
-    return generator.to(resolve_device(device)).eval(), meta
-
-
 @torch.no_grad()
 def translate(generator: UNetGenerator, images: torch.Tensor, batch_size: int = 32) -> torch.Tensor:
     """uint8 N x 3 x S x S -> uint8 N x 3 x S x S through ``generator`` (eval mode, no dropout)."""

@@ -19,6 +19,8 @@ from typing import Callable, Iterable, Iterator, TypeVar
 
 import cv2
 import numpy as np
+import torch
+import torch.nn.functional as F
 from PIL import Image
 
 IMAGE_EXTENSIONS = frozenset({".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp"})
@@ -326,23 +328,6 @@ def describe_os_error(exc: OSError) -> str:
     return f"{where}: {text}" if where else display_path(text)
 
 
-def read_table(path: str | Path, needs: list[str], what: str):
-    """A parquet table written by an earlier stage, or a ValueError naming the file and what is wrong."""
-    import pandas as pd
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(errno.ENOENT, f"no such file ({what})", str(path))
-    try:
-        table = pd.read_parquet(path)
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{path}: not a readable parquet table ({what}): {exc}") from exc
-    missing = [c for c in needs if c not in table.columns]
-    if missing:
-        raise ValueError(f"{path}: missing column(s) {', '.join(missing)}; is this {what}?")
-    return table
-
-
 def labelled_sheet(rows: list[tuple[str, list[list[np.ndarray | None]]]], titles: list[str], per_group: int,
                    side: int = 96) -> np.ndarray:
     """A contact sheet for a person to look at: one row per ``(label, groups)``, each group holding up
@@ -361,3 +346,21 @@ def labelled_sheet(rows: list[tuple[str, list[list[np.ndarray | None]]]], titles
                 x = label_w + (g * per_group + c) * side
                 sheet[header + r * side:header + (r + 1) * side, x:x + side] = cell
     return sheet
+
+
+def read_tiles(paths: list[str], size: int, root: Path = Path(".")) -> torch.Tensor:
+    """Read 8-bit RGB tiles into a uint8 N x 3 x size x size tensor, resizing (area/bilinear) when needed."""
+    if not paths:
+        return torch.zeros((0, 3, size, size), dtype=torch.uint8)
+    arrays = []
+    for path in paths:
+        with Image.open(root / path) as image:
+            if image.mode != "RGB":
+                raise ValueError(f"{path}: tile is {image.mode}, expected 8-bit RGB (rerun the roi stage)")
+            arrays.append(np.asarray(image))
+    batch = torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous()
+    if batch.shape[-1] != size or batch.shape[-2] != size:
+        batch = F.interpolate(batch.float(), size=(size, size), mode="area" if batch.shape[-1] > size else "bilinear",
+                              align_corners=None if batch.shape[-1] > size else False)
+        batch = batch.round().clamp(0, 255).to(torch.uint8)
+    return batch

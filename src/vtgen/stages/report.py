@@ -31,9 +31,9 @@ import torch  # noqa: E402
 import yaml  # noqa: E402
 from PIL import Image  # noqa: E402
 
-from .imageio import labelled_sheet, write_png  # noqa: E402
-from .pairing import DIRECTIONS  # noqa: E402
-from .score import candidate_label  # noqa: E402
+from vtgen.io.images import labelled_sheet, write_png
+from vtgen.core.domain import DIRECTIONS
+from vtgen.io.tables import candidate_label
 
 RUN_LAYOUT = {
     "ingest": Path("data/ingest"),

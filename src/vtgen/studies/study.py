@@ -34,9 +34,11 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .config import model_settings, resolve_key, validate_params
-from .imageio import atomic_output_dir, read_table
-from .pairing import DIRECTIONS, PAIR_COLUMNS, SPLIT_COLUMNS
+from vtgen.io.params import model_settings, resolve_key, validate_params
+from vtgen.io.images import atomic_output_dir
+from vtgen.io.tables import read_table
+from vtgen.core.domain import DIRECTIONS
+from vtgen.io.tables import PAIR_COLUMNS, SPLIT_COLUMNS
 
 DATA_SECTIONS = ("dataset", "synthetic", "ingest", "roi", "pairing")
 WORK_ROOT = Path("studies_work")
@@ -104,10 +106,10 @@ def prepare_data(params: dict, variant: dict, default_pairs: Path, work: Path) -
     render/ingest/roi/pairs outputs under ``work/data``."""
     if all(variant[s] == params[s] for s in DATA_SECTIONS):
         return default_pairs
-    from .ingest import run_ingest
-    from .pairing import run_pairing
-    from .synthetic import render_dataset
-    from .tiling import run_roi
+    from vtgen.stages.ingest import run_ingest
+    from vtgen.stages.pairs import run_pairing
+    from vtgen.stages.render import render_dataset
+    from vtgen.stages.roi import run_roi
 
     data = work / "data"
     raw = Path(variant["dataset"]["path"])
@@ -132,8 +134,8 @@ def gan_test(variant: dict, splits: pd.DataFrame, generated: pd.DataFrame, modal
     """Accuracy of a classifier trained on the real training tiles of ``modality`` (classify settings,
     first seed) on the real test tiles and on the generated test images ("GAN-test"). The classifier
     is trained once per process for the same tiles and settings."""
-    from .classifier import accuracy, train_classifier
-    from .train import read_tiles
+    from vtgen.core.classifier import accuracy, train_classifier
+    from vtgen.io.images import read_tiles
 
     cfg = variant["classify"]
     real = splits[splits["modality"] == modality]
@@ -181,9 +183,9 @@ def _quality(by_class: pd.DataFrame) -> pd.DataFrame:
 def run_direction(variant: dict, direction: str, pairs_dir: Path, work: Path, label: str,
                   progress: bool = True) -> tuple[pd.DataFrame, dict]:
     """Train every ``translation.scope`` entry of ``direction``, generate and score: (quality table, timings)."""
-    from .generate import run_generate
-    from .score import by_class, score_direction
-    from .train import run_train
+    from vtgen.stages.generate import run_generate
+    from vtgen.stages.score import by_class, score_direction
+    from vtgen.stages.train import run_train
 
     timings = {"train_seconds": 0.0}
     for scope in variant["translation"]["scope"]:
@@ -228,7 +230,7 @@ def run_variant(params: dict, kind: str, name: str, out_dir: str | Path, pairs_d
     else:
         experiment = params["studies"]["experiments"]["runs"][name]
         runs = [("run", variant, experiment["directions"], experiment["mode"])]
-    from .report import code_version
+    from vtgen.stages.report import code_version
 
     tables, result = [], {"kind": kind, "name": name, "overrides": overrides, "code": code_version(),
                           "synthetic": variant["dataset"]["source"] == "synthetic",
@@ -307,9 +309,10 @@ def run_round_trip(variant: dict, pairs_dir: Path, work: Path, progress: bool = 
     """The paired-dataset run: train V2T, then T2V twice - on real pairs only, and on real pairs mixed
     50/50 with (generated tactile -> original visual) pairs - and score each round trip
     visual -> tactile -> visual against the original visual test image (aligned Colour-SSIM)."""
-    from .generate import load_translator, translate
-    from .metrics import colour_ssim
-    from .train import read_tiles
+    from vtgen.io.checkpoints import load_translator
+    from vtgen.stages.generate import translate
+    from vtgen.core.metrics import colour_ssim
+    from vtgen.io.images import read_tiles
 
     _, v2t_info = run_direction(variant, "v2t", pairs_dir, work / "v2t", "run", progress)
     splits = read_table(pairs_dir / "splits.parquet", SPLIT_COLUMNS, "the split table")
@@ -336,7 +339,7 @@ def run_round_trip(variant: dict, pairs_dir: Path, work: Path, progress: bool = 
     tactile = translate(v2t_model, originals)
     rows, info = [], {"v2t": v2t_info, "mixed_training_pairs": {"real": len(keep), "generated": len(made)}}
     for label, source in (("real pairs only", pairs_dir), ("50/50 real and generated", mixed_dir)):
-        from .train import run_train
+        from vtgen.stages.train import run_train
         out = work / label.replace(" ", "_").replace("/", "-") / "model"
         if not (out / "train.json").is_file():
             run_train(variant, "t2v", "all", source, out, checkpoint_root=out.parent / "checkpoints", progress=progress)

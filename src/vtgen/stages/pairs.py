@@ -19,18 +19,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .config import DIRECTIONS
-from .imageio import atomic_output_dir, read_table
+from vtgen.core.domain import DIRECTIONS
+from vtgen.io.images import atomic_output_dir
+from vtgen.io.tables import read_table
+from vtgen.io.tables import PAIR_COLUMNS, SPLIT_COLUMNS
 
 SPLITS = ("train", "val", "test")
 TILE_NEEDS = ["tile_path", "class", "modality", "split", "source", "pair_key", "tile_index",
               "box_x", "box_y", "box_w", "box_h"]
-SPLIT_COLUMNS = ["path", "class", "modality", "source", "split"]
-PAIR_COLUMNS = [
-    "direction", "split", "class", "input_path", "target_path", "input_source", "target_source", "aligned",
-]
-
-
 def assign_splits(tiles: pd.DataFrame, val_fraction: float, test_fraction: float, seed: int) -> tuple[pd.Series, list[str]]:
     """Split label per tile, decided per (class, source). Returns (labels aligned to ``tiles``, warnings).
 

@@ -10,7 +10,7 @@ albedo (dye and print). Two renderers look at the same patch:
   blue light from three azimuths over the flat-gel colour, a grid of dark marker dots, noise.
   The tactile image never sees the albedo.
 
-:func:`render_dataset` writes the project's generic layout, either aligned (visual and
+:func:`vtgen.stages.render.render_dataset` writes the project's generic layout, either aligned (visual and
 tactile of one patch, paired by name) or unaligned like ViTac (independent patches of the
 same class). Everything is vectorised numpy and OpenCV; each sample draws from its own
 generator, derived from ``(seed, class index, sample index)``, so the output does not depend
@@ -23,19 +23,12 @@ tile still resolves yarns (at 64 px a yarn is 3-9 px) and a large one shows more
 
 from __future__ import annotations
 
-import json
-import multiprocessing
-import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Callable, Sequence
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
-from .imageio import atomic_output_dir, write_png
 
 FABRICS: tuple[str, ...] = (
     "plain_weave",
@@ -571,89 +564,9 @@ def render_gelsight(patch: Patch, rng: np.random.Generator) -> np.ndarray:
 # --------------------------------------------------------------------------- dataset writer
 
 
-def _sample_rngs(seed: int, class_index: int, index: int) -> list[np.random.Generator]:
+def sample_rngs(seed: int, class_index: int, index: int) -> list[np.random.Generator]:
     """Four independent generators of one sample: patch (visual), patch (tactile), visual, tactile."""
     children = np.random.SeedSequence([seed, class_index, index]).spawn(4)
     return [np.random.default_rng(c) for c in children]
 
 
-def _render_sample(job: tuple[str, str, int, int, int, bool, int]) -> None:
-    """Render and write one sample (worker entry point; module level so it pickles)."""
-    root, fabric, class_index, index, size, aligned, seed = job
-    g_patch_v, g_patch_t, g_vis, g_tac = _sample_rngs(seed, class_index, index)
-    patch_v = render_patch(fabric, size, g_patch_v)
-    patch_t = patch_v if aligned else render_patch(fabric, size, g_patch_t)
-    vis_name, tac_name = (f"s{index:04d}", f"s{index:04d}") if aligned else (f"v{index:04d}", f"t{index:04d}")
-    base = Path(root) / fabric
-    write_png(base / "visual" / f"{vis_name}.png", render_visual(patch_v, g_vis))
-    write_png(base / "tactile" / f"{tac_name}.png", render_gelsight(patch_t, g_tac))
-
-
-def _init_worker() -> None:
-    cv2.setNumThreads(1)  # one process per core; no nested thread pools
-
-
-def render_dataset(
-    out_dir: Path,
-    classes: Sequence[str],
-    samples_per_class: int,
-    size: int,
-    aligned: bool,
-    seed: int,
-    workers: int = 2,
-    progress: bool = True,
-) -> dict:
-    """Render the synthetic dataset into `out_dir` in the generic layout.
-
-    Writes ``<class>/visual/<name>.png`` and ``<class>/tactile/<name>.png`` (8-bit RGB) and
-    ``dataset.json``. Aligned: sample i is ``s<i:04d>`` in both modalities (same patch, same
-    view). Unaligned: ``v<i:04d>`` and ``t<i:04d>`` from independent patches of the class.
-    Output is built in a temporary sibling and renamed into place at the end, replacing any old
-    `out_dir` (:func:`vtgen.imageio.atomic_output_dir`). Sample i of a class draws from SeedSequence([seed, FABRICS.index(class), i]),
-    so the files do not depend on `workers`. Returns the dataset.json dict plus "seconds".
-    """
-    t0 = time.perf_counter()
-    classes = list(classes)
-    unknown = [c for c in classes if c not in _GENERATORS]
-    if unknown or not classes:
-        raise ValueError(f"unknown classes {unknown}; valid names: {', '.join(FABRICS)}" if unknown
-                         else f"no classes given; valid names: {', '.join(FABRICS)}")
-    if len(set(classes)) != len(classes):
-        raise ValueError(f"duplicate class names in {classes}")
-    if int(samples_per_class) != samples_per_class or samples_per_class < 1:
-        raise ValueError(f"samples_per_class must be a positive integer, got {samples_per_class!r}")
-    if int(size) != size or size < MIN_SIZE:
-        raise ValueError(f"size must be an integer >= {MIN_SIZE}, got {size!r}")
-    if int(seed) != seed or seed < 0:
-        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
-    if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers!r}")
-
-    info = {
-        "synthetic": True,
-        "generator": "vtgen.synthetic",
-        "aligned": bool(aligned),
-        "seed": int(seed),
-        "size": int(size),
-        "samples_per_class": int(samples_per_class),
-        "classes": classes,
-    }
-    with atomic_output_dir(out_dir) as tmp:
-        for c in classes:
-            (tmp / c / "visual").mkdir(parents=True)
-            (tmp / c / "tactile").mkdir(parents=True)
-        jobs = [(str(tmp), c, FABRICS.index(c), i, int(size), bool(aligned), int(seed))
-                for c in classes for i in range(int(samples_per_class))]
-        with tqdm(total=len(jobs), desc="render synthetic", unit="sample", disable=not progress) as bar:
-            if workers == 1:
-                for job in jobs:
-                    _render_sample(job)
-                    bar.update()
-            else:
-                # spawn, not fork: a forked child inherits OpenCV's thread pool in a locked state
-                context = multiprocessing.get_context("spawn")
-                with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker) as pool:
-                    for _ in pool.map(_render_sample, jobs, chunksize=4):
-                        bar.update()
-        (tmp / "dataset.json").write_text(json.dumps(info, indent=2) + "\n")
-    return {**info, "seconds": round(time.perf_counter() - t0, 3)}

@@ -24,13 +24,13 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-from .config import model_settings
-from .gan import to_model_range
-from .models import MIN_SIZE, PatchDiscriminator
-from .train import CHECKPOINT_NAME, LOSS_NAMES, PairData, TrainingDiverged, train_translator
+from vtgen.io.params import model_settings
+from vtgen.core.gan import to_model_range
+from vtgen.core.models import MIN_SIZE, PatchDiscriminator
+from vtgen.stages.train import CHECKPOINT_NAME, LOSS_NAMES, PairData, train_translator, TrainingDiverged
 
 OUTCOMES = ("finite", "stopped", "crashed", "broken")
-PACKAGE_DIR = Path(__file__).resolve().parent
+PACKAGE_DIR = Path(__file__).resolve().parents[1]
 DEFAULT_PAIRS = 8
 LARGEST_SIZE = 1024  # the largest preset size workflow/schemas/params.schema.yaml accepts
 COLUMNS = ["case", "probe", "settings", "expected", "outcome", "message", "steps", *LOSS_NAMES, "val_l1",
