@@ -16,7 +16,6 @@ appears only in an input means "every value" (for ``{scope}``: the folder holdin
 
 from __future__ import annotations
 
-import ast
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,8 +24,8 @@ import yaml
 
 from vtgen.core.domain import DIRECTIONS, MODALITIES
 from vtgen.io.params import SYNTHETIC_PATH
+from vtgen.io.provenance import PACKAGE_ROOT, code_files
 
-PACKAGE_ROOT = Path(__file__).resolve().parent
 WILDCARD = re.compile(r"\{(\w+)\}")
 
 
@@ -151,69 +150,11 @@ def stages(params: dict, pipeline: str = "main") -> list[Stage]:
 
 # ----------------------------------------------------------------------------- code dependencies
 
-def module_file(module: str) -> Path | None:
-    """The source file of a ``vtgen`` module (a package's ``__init__.py``), or None if it is not one."""
-    parts = module.split(".")
-    if parts[0] != "vtgen":
-        return None
-    base = PACKAGE_ROOT.joinpath(*parts[1:])
-    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
-        if candidate.is_file():
-            return candidate
-    return None
-
-
-def _imported_modules(path: Path, module: str) -> set[str]:
-    """Every ``vtgen`` module that ``path`` imports (top level and inside functions)."""
-    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
-    found: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
-            found.update(a.name for a in node.names)
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                anchor = package.split(".")[: len(package.split(".")) - (node.level - 1)]
-                base = ".".join(anchor + ([base] if base else []))
-            found.add(base)
-            found.update(f"{base}.{a.name}" for a in node.names)  # `from vtgen.core import metrics`
-    return {m for m in found if m.startswith("vtgen") and module_file(m) is not None}
-
-
-def code_files(module: str) -> list[Path]:
-    """The source files ``module`` runs: itself, the ``vtgen`` modules it imports, transitively, and the
-    ``__init__.py`` of every package on the way (Python executes them on import)."""
-    seen: dict[str, Path] = {}
-    todo = [module]
-    while todo:
-        name = todo.pop()
-        if name in seen:
-            continue
-        path = module_file(name)
-        if path is None:
-            raise ValueError(f"stage module {name} has no source file under {PACKAGE_ROOT}")
-        seen[name] = path
-        parents = [".".join(name.split(".")[:i]) for i in range(1, len(name.split(".")))]
-        todo.extend(parents + sorted(_imported_modules(path, name)))
-    return sorted(set(seen.values()))
-
-
 def code_deps(stage: Stage, root: Path | None = None) -> list[str]:
     """``stage``'s code files as paths relative to the project root (``src/vtgen/...``), plus what it reads."""
     root = (root or PACKAGE_ROOT.parents[1]).resolve()
     files = [path.relative_to(root).as_posix() for path in code_files(stage.module)]
     return files + list(stage.reads)
-
-
-def code_fingerprint(module: str) -> str:
-    """SHA-256 over the source of every file ``module`` runs (:func:`code_files`): what a cache keyed on
-    'the code that produced it' compares."""
-    import hashlib
-
-    digest = hashlib.sha256()
-    for path in code_files(module):
-        digest.update(path.relative_to(PACKAGE_ROOT).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
-    return digest.hexdigest()
 
 
 # ----------------------------------------------------------------------------- wildcards and params

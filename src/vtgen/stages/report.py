@@ -18,7 +18,6 @@ import json
 import os
 import platform
 import shutil
-import subprocess
 from pathlib import Path
 
 import matplotlib
@@ -31,6 +30,7 @@ import torch  # noqa: E402
 import yaml  # noqa: E402
 from PIL import Image  # noqa: E402
 
+from vtgen.io.provenance import code_version
 from vtgen.io.images import labelled_sheet, write_png
 from vtgen.core.domain import DIRECTIONS
 from vtgen.io.tables import candidate_label
@@ -64,18 +64,6 @@ SETTING_ORDER = ["real", "real+generated", "low-data real", "low-data real+gener
 
 def _read_json(path: Path) -> dict | None:
     return json.loads(path.read_text()) if path.is_file() else None
-
-
-def code_version() -> str:
-    """``<commit> (+ uncommitted changes)`` of the project's git checkout, or 'unknown'."""
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                check=True, timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                               text=True, check=True, timeout=10).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return "unknown (not a git checkout)"
-    return commit + (" (+ uncommitted changes)" if dirty else "")
 
 
 def model_runs(models_root: Path) -> list[dict]:

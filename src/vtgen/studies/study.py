@@ -230,7 +230,7 @@ def run_variant(params: dict, kind: str, name: str, out_dir: str | Path, pairs_d
     else:
         experiment = params["studies"]["experiments"]["runs"][name]
         runs = [("run", variant, experiment["directions"], experiment["mode"])]
-    from vtgen.stages.report import code_version
+    from vtgen.io.provenance import code_version
 
     tables, result = [], {"kind": kind, "name": name, "overrides": overrides, "code": code_version(),
                           "synthetic": variant["dataset"]["source"] == "synthetic",
