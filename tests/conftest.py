@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import yaml
 from PIL import Image
@@ -88,3 +89,33 @@ def snakemake_project(tmp_path_factory):
     return project, result
 
 
+def pair_tables(root, classes=("a", "b"), per_class=4, aligned=True):
+    """A pairs folder as the pairs stage writes it, with random tiles on disk under ``root``."""
+    rng = np.random.default_rng(1)
+    rows, tiles = [], []
+    for cls in classes:
+        for i in range(per_class):
+            split = "test" if i == 0 else "train"
+            for modality in ("visual", "tactile"):
+                path = f"tiles/{modality}/{cls}/{i}.png"
+                write_image(root / path, rng.integers(0, 256, (32, 32, 3), dtype=np.uint8))
+                tiles.append({"path": path, "class": cls, "modality": modality, "source": f"{cls}/{i}", "split": split})
+            rows.append({"direction": "v2t", "split": split, "class": cls, "input_path": f"tiles/visual/{cls}/{i}.png",
+                         "target_path": f"tiles/tactile/{cls}/{i}.png", "input_source": f"{cls}/{i}",
+                         "target_source": f"{cls}/{i}", "aligned": aligned})
+    return pd.DataFrame(rows), pd.DataFrame(tiles)
+
+
+def write_jpegs(root, count, side=96):
+    """``count`` distinct JPEG files in the generic layout (two classes, both modalities)."""
+    import cv2
+
+    rng = np.random.default_rng(count)
+    base = rng.integers(0, 256, (side, side, 3), dtype=np.uint8)
+    for i in range(count):
+        folder = root / f"c{i % 2}" / ("visual", "tactile")[(i // 2) % 2]
+        folder.mkdir(parents=True, exist_ok=True)
+        image = base.copy()
+        image[0, 0] = i % 256, i // 256 % 256, 0  # distinct bytes per file
+        cv2.imwrite(str(folder / f"s{i:05d}.jpg"), image, [cv2.IMWRITE_JPEG_QUALITY, 90])
+    return root

@@ -11,7 +11,7 @@ import torch
 from PIL import Image
 
 from conftest import TINY_MODEL, tiny_params, write_image
-from test_train import pair_tables
+from conftest import pair_tables
 from vtgen.cli import main
 from vtgen.io.checkpoints import load_translator
 from vtgen.stages.generate import run_generate, select_inputs, translate, translate_files

@@ -2,7 +2,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from conftest import random_rgb, write_image
+from conftest import write_jpegs, random_rgb, write_image
 from vtgen.io.images import ImageError, read_rgb8
 from vtgen.stages.ingest import ingest_dataset, IngestError, run_ingest
 
@@ -156,21 +156,6 @@ def test_stream_map_raises_the_first_error_and_cancels_the_rest():
     with pytest.raises(ValueError, match="bad item 3"):
         list(stream_map(work, iter(range(1000)), workers=2, window=4))
     assert len(started) < 20  # the other 980-odd items were never started
-
-
-def write_jpegs(root, count, side=96):
-    """``count`` distinct JPEG files in the generic layout (two classes, both modalities)."""
-    import cv2
-
-    rng = np.random.default_rng(count)
-    base = rng.integers(0, 256, (side, side, 3), dtype=np.uint8)
-    for i in range(count):
-        folder = root / f"c{i % 2}" / ("visual", "tactile")[(i // 2) % 2]
-        folder.mkdir(parents=True, exist_ok=True)
-        image = base.copy()
-        image[0, 0] = i % 256, i // 256 % 256, 0  # distinct bytes per file
-        cv2.imwrite(str(folder / f"s{i:05d}.jpg"), image, [cv2.IMWRITE_JPEG_QUALITY, 90])
-    return root
 
 
 def traced_peak(func) -> int:

@@ -513,7 +513,7 @@ def test_roi_stage_memory_grows_with_the_tile_table_not_with_pixels(tmp_path):
     import gc
     import tracemalloc
 
-    from test_ingest import write_jpegs
+    from conftest import write_jpegs
     from vtgen.stages.ingest import ingest_dataset
     from vtgen.stages.roi import cut_dataset_tiles
 

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import vtgen.stages.train as train_module
-from conftest import TINY_MODEL, write_image
+from conftest import pair_tables, TINY_MODEL, write_image
 from vtgen.core.gan import random_positioning, to_model_range
 from vtgen.stages.train import BatchStream, draw_batch, load_pair_data, PairData, prepare_batch, run_train, SpeedChoices, train_translator, TrainingDiverged
 from vtgen.io.images import read_tiles
@@ -150,23 +150,6 @@ def test_read_tiles_resizes_and_refuses_non_rgb(tmp_path):
     write_image(tmp_path / "g.png", rng.integers(0, 256, (32, 32), dtype=np.uint8))
     with pytest.raises(ValueError, match="g.png: tile is L"):
         read_tiles(["g.png"], 32, tmp_path)
-
-
-def pair_tables(root, classes=("a", "b"), per_class=4, aligned=True):
-    """A pairs folder as the pairs stage writes it, with random tiles on disk under ``root``."""
-    rng = np.random.default_rng(1)
-    rows, tiles = [], []
-    for cls in classes:
-        for i in range(per_class):
-            split = "test" if i == 0 else "train"
-            for modality in ("visual", "tactile"):
-                path = f"tiles/{modality}/{cls}/{i}.png"
-                write_image(root / path, rng.integers(0, 256, (32, 32, 3), dtype=np.uint8))
-                tiles.append({"path": path, "class": cls, "modality": modality, "source": f"{cls}/{i}", "split": split})
-            rows.append({"direction": "v2t", "split": split, "class": cls, "input_path": f"tiles/visual/{cls}/{i}.png",
-                         "target_path": f"tiles/tactile/{cls}/{i}.png", "input_source": f"{cls}/{i}",
-                         "target_source": f"{cls}/{i}", "aligned": aligned})
-    return pd.DataFrame(rows), pd.DataFrame(tiles)
 
 
 def test_load_pair_data_keeps_the_training_split_of_the_scope(tmp_path):
