@@ -11,8 +11,10 @@ import torch
 import yaml
 
 from conftest import tiny_params, write_image
-from vtgen.core.classifier import AlexNet, apply_weights, first_conv, make_classifier, train_classifier
+from vtgen.core.classifier import (AlexNet, TrainingDiverged, apply_weights, at_chance, first_conv, make_classifier,
+                                   train_classifier, wilson_interval)
 from vtgen.io.checkpoints import read_state_dict
+from vtgen.io.images import read_tiles
 from vtgen.stages.classify import ACCURACY_COLUMNS, low_data_subset, run_classify, SETTINGS
 from vtgen.cli import main
 
@@ -248,3 +250,113 @@ def test_stage_with_one_class_reports_not_applicable(tmp_path, monkeypatch, caps
     assert json.loads((tmp_path / "out/visual/summary.json").read_text())["status"] == summary["status"]
     assert "warning" in capsys.readouterr().out
     assert (tmp_path / "out/visual/curves.png").is_file()
+
+
+def test_wilson_interval_and_the_at_chance_rule():
+    low, high = wilson_interval(0.5, 100)
+    assert low == pytest.approx(0.4038, abs=1e-4) and high == pytest.approx(0.5962, abs=1e-4)
+    assert wilson_interval(0.0, 10)[0] == 0.0 and 0.27 < wilson_interval(0.0, 10)[1] < 0.28
+    assert at_chance(0.09, 120, 12)  # the 12-class paper layout: 0.09 on 120 images is chance (1/12)
+    assert not at_chance(0.5, 120, 12)
+    assert at_chance(0.5, 6, 3) and not at_chance(1.0, 6, 3)  # 6 images cannot tell 0.5 from 1/3; 1.0 they can
+    assert not at_chance(0.0, 200, 3)  # far below chance is distinguishable from chance (it is worse)
+    assert not at_chance(float("nan"), 0, 3) and not at_chance(0.3, 0, 3)  # nothing measured: nothing flagged
+
+
+def test_non_finite_training_loss_stops_naming_the_epoch_and_seed():
+    x, y = stripes(10, seed=0)  # two batches: the second starts from NaN weights
+    with pytest.raises(TrainingDiverged, match=r"mean loss nan in epoch 1 \(seed 5\); lower classify.lr") as caught:
+        train_classifier(x, y, x, y, 3, dict(TINY, lr=1e12), seed=5)
+    assert caught.value.epoch == 1 and caught.value.seed == 5 and isinstance(caught.value, RuntimeError)
+
+
+def run_stage_cli(tmp_path, params, capsys, modality="visual"):
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    code = main(["classify", "--params", "params.yaml", "--modality", modality, "--pairs", "data/pairs",
+                 "--generated", "data/generated", "--out", f"out/{modality}"])
+    return code, capsys.readouterr()
+
+
+def test_stage_on_separable_data_is_not_flagged(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    fake_layout(tmp_path, test=6)  # 18 test images of three colour-coded classes
+    code, printed = run_stage_cli(tmp_path, classify_params(epochs=3), capsys)
+    assert code == 0, printed.err
+    table = pd.read_parquet(tmp_path / "out/visual/accuracy.parquet")
+    final = table[table["epoch"] == 3]
+    assert (final["test_accuracy"] > 0.8).all() and not final["at_chance"].any()
+    assert table["at_chance"].dtype == bool
+    summary = json.loads((tmp_path / "out/visual/summary.json").read_text())
+    assert summary["chance"] == pytest.approx(1 / 3)
+    assert {name: s["at_chance"] for name, s in summary["settings"].items()} == dict.fromkeys(SETTINGS, False)
+    assert summary["gan_test"]["at_chance"] is False and summary["gan_test"]["images"] == 18
+    assert "chance level" not in printed.out + printed.err
+
+
+def test_stage_at_an_absurd_learning_rate_is_flagged_or_stopped(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    fake_layout(tmp_path, test=6)
+    params = classify_params(lr=1e6, seeds=[0])
+    code, printed = run_stage_cli(tmp_path, params, capsys)
+    out = tmp_path / "out/visual"
+    if code != 0:  # the loss overflowed: one line naming where, no outputs
+        assert code == 2 and not out.exists()
+        assert printed.err.count("\n") == 1 and "vtgen classify: error: classify visual: setting '" in printed.err
+        assert "seed 0: the training loss became non-finite" in printed.err and "lower classify.lr" in printed.err
+        return
+    summary = json.loads((out / "summary.json").read_text())
+    flagged = [name for name, s in summary["settings"].items() if s["at_chance"]]
+    assert "real" in flagged
+    table = pd.read_parquet(out / "accuracy.parquet")
+    assert table[(table["setting"] == "real") & (table["epoch"] == 2)]["at_chance"].all()
+    warnings = [line for line in printed.out.splitlines() if "ended at chance level" in line]
+    assert len(warnings) == len(flagged) + summary["gan_test"]["at_chance"]
+    assert (f"classify visual: warning: 'real' ended at chance level (accuracy {summary['settings']['real']['final_mean']:.2f} "
+            f"on 18 test images, chance 0.33); check classify.lr (1e+06)") in printed.out
+
+
+def test_stage_stops_when_the_training_loss_becomes_non_finite(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    fake_layout(tmp_path)
+    with pytest.raises(RuntimeError, match=r"^classify tactile: setting 'real', seed 0: the training loss became "
+                                           r"non-finite \(nan\) in epoch 1; lower classify.lr \(now 1e\+12\)$"):
+        run_classify(classify_params(lr=1e12), "tactile", "data/pairs", "data/generated", "out/tactile", progress=False)
+    assert not (tmp_path / "out/tactile").exists()
+
+
+def truncate(path, keep=0.5):
+    data = path.read_bytes()
+    path.write_bytes(data[:int(len(data) * keep)])
+
+
+def test_read_tiles_names_a_truncated_or_corrupt_tile_and_the_remedy(tmp_path):
+    rng = np.random.default_rng(0)
+    for name in ("good.png", "cut.png", "junk.png"):
+        write_image(tmp_path / name, rng.integers(0, 256, (32, 32, 3), dtype=np.uint8))
+    truncate(tmp_path / "cut.png")
+    (tmp_path / "junk.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(200))
+    write_image(tmp_path / "big.png", rng.integers(0, 256, (48, 48, 3), dtype=np.uint8))
+    assert read_tiles(["good.png"], 32, tmp_path).shape == (1, 3, 32, 32)
+    with pytest.raises(ValueError, match=r"^.*/cut\.png: truncated tile \(image file is truncated.*\); rerun the roi stage$"):
+        read_tiles(["good.png", "cut.png"], 32, tmp_path)
+    with pytest.raises(ValueError, match=r"junk\.png: .*; rerun the roi stage$"):
+        read_tiles(["junk.png"], 32, tmp_path)
+    with pytest.raises(ValueError, match=r"gone\.png: tile not found \(no such file\); rerun the generate stage$"):
+        read_tiles(["gone.png"], 32, tmp_path, remedy="rerun the generate stage")
+    with pytest.raises(ValueError, match=r"big\.png: tile is 48x48, but .*good\.png is 32x32; rerun the roi stage"):
+        read_tiles(["good.png", "big.png"], 32, tmp_path)
+
+
+def test_stage_names_a_truncated_tile_in_one_line(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    fake_layout(tmp_path)
+    truncate(tmp_path / "data/roi/visual/felt/train3.png")
+    code, printed = run_stage_cli(tmp_path, classify_params(), capsys)
+    assert code == 2 and printed.err.count("\n") == 1, printed.err  # one line, no traceback
+    assert printed.err.startswith("vtgen classify: error: data/roi/visual/felt/train3.png: truncated tile (image file is")
+    assert printed.err.endswith("; rerun the roi stage\n")
+    generated = tmp_path / "data/generated/t2v/images/all/train/denim/train0.png"
+    generated.write_bytes(b"not an image")
+    write_image(tmp_path / "data/roi/visual/felt/train3.png", np.zeros((32, 32, 3), dtype=np.uint8))  # repaired
+    code, printed = run_stage_cli(tmp_path, classify_params(), capsys)
+    assert code == 2 and "train/denim/train0.png: not a decodable image; rerun the generate stage (t2v)" in printed.err

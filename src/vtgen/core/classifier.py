@@ -157,6 +157,36 @@ def apply_weights(model: AlexNet, state: Mapping, retrain_layers: int, source: s
     return {"reinitialised": reinitialised, "trainable": trainable}
 
 
+class TrainingDiverged(RuntimeError):
+    """The mean training loss of an epoch became non-finite (NaN or infinite); ``epoch``, ``seed``, ``loss`` say where."""
+
+    def __init__(self, epoch: int, seed: int, loss: float):
+        super().__init__(f"classifier training diverged: mean loss {loss} in epoch {epoch} (seed {seed}); lower classify.lr")
+        self.epoch, self.seed, self.loss = epoch, seed, loss
+
+
+def wilson_interval(accuracy: float, count: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval (95% for z = 1.96) of a proportion ``accuracy`` observed on ``count`` trials;
+    ``(0, 1)`` when ``count`` is 0."""
+    if count <= 0:
+        return 0.0, 1.0
+    share = min(max(float(accuracy), 0.0), 1.0)
+    factor = 1 + z * z / count
+    centre = (share + z * z / (2 * count)) / factor
+    half = z / factor * math.sqrt(share * (1 - share) / count + z * z / (4 * count * count))
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def at_chance(accuracy: float, count: int, num_classes: int) -> bool:
+    """True when ``accuracy`` on ``count`` test images is not distinguishable from chance ``1 / num_classes``:
+    chance lies inside the 95% Wilson interval of the accuracy. False when nothing was measured
+    (``count`` 0 or a NaN accuracy)."""
+    if count <= 0 or accuracy is None or not math.isfinite(accuracy):
+        return False
+    low, high = wilson_interval(accuracy, count)
+    return low <= 1.0 / num_classes <= high
+
+
 @dataclass
 class ClassifierRun:
     """One training run: per-epoch test accuracy, accuracy on each extra set, mean train loss; the trained model."""
@@ -239,6 +269,7 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
     test set and on each ``extra_eval`` set, and ``progress(epoch, row)`` is called. Everything
     random derives from ``seed`` (the caller's global RNG state is left untouched), so on CPU the
     same seed gives identical accuracies. ``weights`` (a state_dict read from ``weights_source``) is applied with :func:`apply_weights`.
+    A non-finite mean training loss in an epoch raises :class:`TrainingDiverged` at the end of that epoch.
     """
     if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 2:
         raise ValueError(f"classification needs at least 2 classes, got {num_classes!r}")
@@ -283,8 +314,7 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
                 total += loss.detach() * len(index)
             mean_loss = float(total) / count
             if not math.isfinite(mean_loss):
-                raise RuntimeError(f"classifier training diverged: mean loss {mean_loss} in epoch {epoch} (seed {seed}); "
-                                   f"lower classify.lr")
+                raise TrainingDiverged(epoch, seed, mean_loss)
             train_loss.append(mean_loss)
             refresh_norm_statistics(model, images[order[:NORM_IMAGES].to(device)])
             test_accuracy.append(accuracy(model, test_x, test_y))

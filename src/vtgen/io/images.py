@@ -348,19 +348,46 @@ def labelled_sheet(rows: list[tuple[str, list[list[np.ndarray | None]]]], titles
     return sheet
 
 
-def read_tiles(paths: list[str], size: int, root: Path = Path(".")) -> torch.Tensor:
-    """Read 8-bit RGB tiles into a uint8 N x 3 x size x size tensor, resizing (area/bilinear) when needed."""
+def read_tiles(paths: list[str], size: int, root: Path = Path("."), remedy: str = "rerun the roi stage") -> torch.Tensor:
+    """Read 8-bit RGB tiles (``root / path``) into a uint8 N x 3 x size x size tensor, resizing (area/bilinear)
+    when needed. A missing, truncated, corrupt or non-RGB file, or tiles of different sizes, raise ValueError
+    naming the file and ``remedy`` (the stage that writes these images)."""
     if not paths:
         return torch.zeros((0, 3, size, size), dtype=torch.uint8)
     arrays = []
     for path in paths:
-        with Image.open(root / path) as image:
-            if image.mode != "RGB":
-                raise ValueError(f"{path}: tile is {image.mode}, expected 8-bit RGB (rerun the roi stage)")
-            arrays.append(np.asarray(image))
+        arrays.append(_read_tile(Path(root) / path, remedy))
+        if arrays[-1].shape != arrays[0].shape:
+            raise ValueError(f"{display_path(Path(root) / path)}: tile is {arrays[-1].shape[1]}x{arrays[-1].shape[0]}, "
+                             f"but {display_path(Path(root) / paths[0])} is {arrays[0].shape[1]}x{arrays[0].shape[0]}; "
+                             f"{remedy}")
     batch = torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous()
     if batch.shape[-1] != size or batch.shape[-2] != size:
         batch = F.interpolate(batch.float(), size=(size, size), mode="area" if batch.shape[-1] > size else "bilinear",
                               align_corners=None if batch.shape[-1] > size else False)
         batch = batch.round().clamp(0, 255).to(torch.uint8)
     return batch
+
+
+def _read_tile(path: Path, remedy: str) -> np.ndarray:
+    """One tile as an (H, W, 3) uint8 array, or ValueError naming ``path``, what is wrong and ``remedy``."""
+    where = display_path(path)
+    if not path.is_file():
+        raise ValueError(f"{where}: tile not found ({'a folder' if path.is_dir() else 'no such file'}); {remedy}")
+    try:
+        with Image.open(path, formats=DECODED_FORMATS) as image:
+            mode = image.mode
+            image.load()
+            array = np.asarray(image)
+    except Image.UnidentifiedImageError as exc:
+        raise ValueError(f"{where}: not a decodable image; {remedy}") from exc
+    except OSError as exc:
+        text = _without_path(str(exc), path)
+        kind = "truncated tile" if "truncated" in text.lower() else "corrupt tile"
+        raise ValueError(f"{where}: {kind} ({text}); {remedy}") from exc
+    except Exception as exc:  # noqa: BLE001 - a corrupt file can make any decoder step fail; it is the file's fault
+        raise ValueError(f"{where}: corrupt tile ({type(exc).__name__}: {_without_path(str(exc), path)}); "
+                         f"{remedy}") from exc
+    if mode != "RGB":
+        raise ValueError(f"{where}: tile is {mode}, expected 8-bit RGB; {remedy}")
+    return array

@@ -16,6 +16,16 @@ epoch by the ``real`` classifiers (a real-only classifier applied to generated i
 generated training row whose input is not a training tile is refused as a split leak. Without
 generated training images the two ``+generated`` settings are skipped (noted in summary.json).
 Test images always are the real test-split tiles; the validation split is not used.
+
+A classifier that learnt nothing is flagged, not hidden: an accuracy is *at chance* when chance,
+1 / number of classes, lies inside the 95% Wilson score interval of that accuracy over the number
+of images it was measured on (:func:`vtgen.core.classifier.at_chance`). The accuracy table's
+``at_chance`` column applies the rule to each row's test accuracy; summary.json's ``at_chance`` per
+setting applies it to the final-epoch accuracy averaged over seeds, on the real test images (the
+seeds share those images, so they are not counted once per seed), and ``gan_test.at_chance`` to
+the GAN-test's, on the generated test images. Each flagged setting prints one warning line. A
+training loss that becomes non-finite stops the stage with a RuntimeError naming the modality,
+setting, seed and epoch.
 """
 
 from __future__ import annotations
@@ -29,7 +39,7 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from vtgen.core.classifier import train_classifier
+from vtgen.core.classifier import TrainingDiverged, at_chance, train_classifier
 from vtgen.io.checkpoints import read_state_dict
 from vtgen.io.tables import GENERATED_COLUMNS
 from vtgen.io.images import atomic_output_dir
@@ -42,7 +52,7 @@ from vtgen.core.device import resolve_device
 SETTINGS = ("real", "real+generated", "low-data real", "low-data real+generated")
 ACCURACY_COLUMNS = {
     "modality": "object", "setting": "object", "seed": "int64", "epoch": "int64", "test_accuracy": "float64",
-    "gan_test_accuracy": "float64", "train_images": "int64", "real_images": "int64", "generated_images": "int64",
+    "at_chance": "bool", "gan_test_accuracy": "float64", "train_images": "int64", "real_images": "int64", "generated_images": "int64",
     "seconds": "float64",
 }
 
@@ -98,8 +108,11 @@ def _finite_list(values) -> list[float | None]:
     return [float(v) if math.isfinite(v) else None for v in values]
 
 
-def summarise(table: pd.DataFrame) -> tuple[dict, dict | None]:
-    """Per setting: final-epoch accuracy mean/std over seeds and per-epoch means/stds; the same for the GAN-test."""
+def summarise(table: pd.DataFrame, num_classes: int, test_images: int,
+              gan_test_images: int = 0) -> tuple[dict, dict | None]:
+    """Per setting: final-epoch accuracy mean/std over seeds, per-epoch means/stds and ``at_chance`` (the
+    final mean on ``test_images`` images, see the module docstring); the same for the GAN-test (on
+    ``gan_test_images``)."""
     per_setting, gan_test = {}, None
     for setting in [s for s in SETTINGS if s in set(table["setting"])]:
         rows = table[table["setting"] == setting]
@@ -111,14 +124,34 @@ def summarise(table: pd.DataFrame) -> tuple[dict, dict | None]:
             "epoch_mean": _finite_list(by_epoch.mean()),
             "epoch_std": _finite_list(by_epoch.std(ddof=1).fillna(0.0)),
             "train_images": int(final["train_images"].iloc[0]), "generated_images": int(final["generated_images"].iloc[0]),
+            "at_chance": at_chance(mean, test_images, num_classes) if mean is not None else False,
         }
         if rows["gan_test_accuracy"].notna().any():
             gan = rows.groupby("epoch")["gan_test_accuracy"]
             mean, std = _mean_std(final["gan_test_accuracy"])
-            gan_test = {"setting": setting, "final_mean": mean, "final_std": std,
+            gan_test = {"setting": setting, "final_mean": mean, "final_std": std, "images": gan_test_images,
+                        "at_chance": at_chance(mean, gan_test_images, num_classes) if mean is not None else False,
                         "epoch_mean": _finite_list(gan.mean()),
                         "epoch_std": _finite_list(gan.std(ddof=1).fillna(0.0))}
     return per_setting, gan_test
+
+
+def chance_warnings(modality: str, summary: dict) -> list[str]:
+    """One warning line per setting (and GAN-test) that summary.json flags ``at_chance``."""
+    chance, cfg, counts = summary["chance"], summary["params"], summary["counts"]
+    lines = []
+    for setting, stats in summary["settings"].items():
+        if stats["at_chance"]:
+            lines.append(f"classify {modality}: warning: '{setting}' ended at chance level (accuracy "
+                         f"{stats['final_mean']:.2f} on {counts['real_test']} test images, chance {chance:.2f}); "
+                         f"check classify.lr ({cfg['lr']:g}), classify.epochs ({cfg['epochs']}) and the training images")
+    gan = summary.get("gan_test")
+    if gan and gan["at_chance"]:
+        lines.append(f"classify {modality}: warning: GAN-test ('{gan['setting']}' classifier on generated test images) "
+                     f"ended at chance level (accuracy {gan['final_mean']:.2f} on {gan['images']} generated test images, "
+                     f"chance {chance:.2f}); the generated images may not show their class, or the '{gan['setting']}' "
+                     f"classifier is at chance too")
+    return lines
 
 
 def plot_curves(path: Path, modality: str, per_setting: dict, gan_test: dict | None, message: str | None = None) -> None:
@@ -169,7 +202,9 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     Reads ``pairs_dir/splits.parquet`` and ``generated_root/<direction>/generated.parquet`` (paths in
     them relative to the working directory). Writes accuracy.parquet and accuracy.csv (one row per
     setting, seed and epoch; columns ACCURACY_COLUMNS, gan_test_accuracy NaN outside ``real``),
-    summary.json and curves.png. With fewer than 2 classes nothing is trained: the tables are empty
+    summary.json (with ``chance`` and an ``at_chance`` flag per setting and for the GAN-test, see the
+    module docstring) and curves.png; prints a warning line per flagged setting. A non-finite
+    training loss raises RuntimeError naming modality, setting, seed and epoch. With fewer than 2 classes nothing is trained: the tables are empty
     and summary.json's ``status`` says why; otherwise ``status`` is "ok".
     """
     cfg = params["classify"]
@@ -190,7 +225,8 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     if len(classes) < 2:
         held = f" ({classes[0]})" if classes else ""
         status = f"not applicable: classification needs at least 2 classes, the data has {len(classes)}{held}"
-        summary.update(status=status, counts={"real_train": len(real_train)}, settings={}, skipped={}, gan_test=None)
+        summary.update(status=status, chance=None, counts={"real_train": len(real_train)}, settings={}, skipped={},
+                       gan_test=None)
         with atomic_output_dir(out_dir) as tmp:
             _write_outputs(tmp, pd.DataFrame(columns=list(ACCURACY_COLUMNS)), summary, {}, None, status)
         print(f"classify {modality}: warning: {status}; empty tables -> {out_dir}")
@@ -213,7 +249,8 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     size = cfg["size"]
 
     def load(frame: pd.DataFrame, column: str) -> tuple[torch.Tensor, torch.Tensor]:
-        return (read_tiles(list(frame[column]), size),
+        remedy = "rerun the roi stage" if column == "path" else f"rerun the generate stage ({direction})"
+        return (read_tiles(list(frame[column]), size, remedy=remedy),
                 torch.tensor([label_of[c] for c in frame["class"]], dtype=torch.long))
 
     train_x, train_y = load(real_train, "path")
@@ -257,26 +294,36 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
                 bar.set_postfix({"epoch": epoch, "acc": f"{row['test_accuracy']:.3f}", "loss": f"{row['train_loss']:.3f}"},
                                 refresh=True)
 
-            run = train_classifier(x, y, test_x, test_y, len(classes), cfg, seed, device, extra_eval=extra,
-                                   weights=weights, weights_source=str(weights_file), retrain_layers=cfg["retrain_layers"], progress=show)
+            try:
+                run = train_classifier(x, y, test_x, test_y, len(classes), cfg, seed, device, extra_eval=extra,
+                                       weights=weights, weights_source=str(weights_file),
+                                       retrain_layers=cfg["retrain_layers"], progress=show)
+            except TrainingDiverged as exc:
+                bar.close()
+                raise RuntimeError(f"classify {modality}: setting '{setting}', seed {seed}: the training loss became "
+                                   f"non-finite ({exc.loss}) in epoch {exc.epoch}; lower classify.lr "
+                                   f"(now {cfg['lr']:g})") from exc
             gan = run.extra_accuracy.get("gan_test", [math.nan] * len(run.test_accuracy))
             for epoch, (acc, gan_acc) in enumerate(zip(run.test_accuracy, gan), start=1):
                 rows.append({"modality": modality, "setting": setting, "seed": seed, "epoch": epoch,
-                             "test_accuracy": acc, "gan_test_accuracy": gan_acc, "train_images": len(x),
+                             "test_accuracy": acc, "at_chance": at_chance(acc, len(test_x), len(classes)),
+                             "gan_test_accuracy": gan_acc, "train_images": len(x),
                              "real_images": len(real_x), "generated_images": len(x) - len(real_x),
                              "seconds": run.seconds})
             bar.update(1)
     bar.close()
 
     table = pd.DataFrame(rows, columns=list(ACCURACY_COLUMNS))
-    per_setting, gan_test = summarise(table)
-    summary.update(status="ok", device=str(device), counts=counts, settings=per_setting, skipped=skipped,
+    per_setting, gan_test = summarise(table, len(classes), len(test_x), len(gan_x))
+    summary.update(status="ok", chance=1.0 / len(classes), device=str(device), counts=counts, settings=per_setting, skipped=skipped,
                    gan_test=gan_test, wall_seconds=round(float(table.groupby(["setting", "seed"])["seconds"].first().sum()), 2))
     with atomic_output_dir(out_dir) as tmp:
         _write_outputs(tmp, table, summary, per_setting, gan_test, None)
     finals = ", ".join(f"{name} {s['final_mean']:.3f}±{s['final_std']:.3f}" for name, s in per_setting.items()
                        if s["final_mean"] is not None)
     gan_text = f", GAN-test {gan_test['final_mean']:.3f}" if gan_test and gan_test["final_mean"] is not None else ""
+    for line in chance_warnings(modality, summary):
+        print(line)
     print(f"classify {modality}: final test accuracy over {len(cfg['seeds'])} seed(s): {finals}{gan_text} "
           f"({len(classes)} classes, {summary['wall_seconds']:.0f} s training) -> {out_dir}")
     return summary
