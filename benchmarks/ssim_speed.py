@@ -1,18 +1,18 @@
-"""Milliseconds per image pair of vtgen.metrics.colour_ssim against scikit-image's structural_similarity.
+"""Milliseconds per image pair of vtgen.core.metrics.colour_ssim against scikit-image's structural_similarity.
 
 Image pairs are smooth random textures and noisy copies of them (uint8, channels last), so the
 scores sit in the range real comparisons give. Methods, each on the same ``--batch`` pairs:
 
 - scikit-image: ``structural_similarity(x, y, channel_axis=-1, gaussian_weights=True, sigma=1.5,
   use_sample_covariance=False, data_range=255)`` in a Python loop over the pairs;
-- torch float64: the previous ``colour_ssim`` path (``vtgen.metrics._torch_colour_ssim``), batched;
-- numba float64: ``colour_ssim`` as it runs now (the fused kernel), batched, on one thread
-  (per-core efficiency, comparable with the single-threaded scikit-image) and on ``--threads``.
+- numba float64: ``colour_ssim`` (the fused kernel, vtgen's one SSIM implementation), batched,
+  on one thread (per-core efficiency, comparable with the single-threaded scikit-image) and on
+  ``--threads``.
 
 Set-to-set (every image of one set against every image of another, ``--set N``): the naive
 scikit-image double loop, timed on a ``--skimage-set`` x ``--skimage-set`` subset and given per
 pair (its cost per pair does not depend on N), against ``pairwise_colour_ssim`` on N x N pairs
-(numba) and its previous torch float64 path (``vtgen.metrics._torch_pairwise_colour_ssim``).
+(numba).
 
 Timing: one warm-up run of every method, then ``--repeats`` rounds that run the methods one
 after the other (interleaved, so a change in machine load hits them alike, with a 20 ms pause
@@ -33,6 +33,7 @@ the speed-ups are against scikit-image at its best.
 
     python benchmarks/ssim_speed.py                          # 64 pairs of 256x256x3, 2 threads
     python benchmarks/ssim_speed.py --batch 16 --size 128 --repeats 5 --set 8
+    python benchmarks/ssim_speed.py --quick                  # 16 pairs of 128x128x3, 3 rounds, set 8
 """
 
 from __future__ import annotations
@@ -48,11 +49,9 @@ import time
 
 import numba
 import numpy as np
-import torch
 from scipy.ndimage import gaussian_filter
 from skimage.metrics import structural_similarity
 
-from vtgen.core import metrics
 from vtgen.core.metrics import colour_ssim, pairwise_colour_ssim
 
 FIRST_CALL = """
@@ -114,13 +113,16 @@ def main() -> None:
                         help="image pairs per batch (skimage loops over them)")
     parser.add_argument("--size", type=int, default=256, help="image side (square, 3 channels)")
     parser.add_argument("--repeats", type=int, default=5, help="interleaved timing rounds (median)")
-    parser.add_argument("--threads", type=int, default=2, help="torch and numba threads")
+    parser.add_argument("--threads", type=int, default=2, help="numba threads")
     parser.add_argument("--set", type=int, default=16, help="set-to-set: N x N pairs for pairwise_colour_ssim")
     parser.add_argument("--skimage-set", type=int, default=4,
                         help="set-to-set: subset side for the skimage double loop (and the diff)")
     parser.add_argument("--no-first-call", action="store_true", help="skip timing the compilation in subprocesses")
+    parser.add_argument("--quick", action="store_true",
+                        help="a short run: --batch 16 --size 128 --repeats 3 --set 8 --no-first-call")
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    if args.quick:
+        args.batch, args.size, args.repeats, args.set, args.no_first_call = 16, 128, 3, 8, True
     threads = min(args.threads, numba.config.NUMBA_NUM_THREADS)
     numba.set_num_threads(threads)
 
@@ -139,21 +141,19 @@ def main() -> None:
 
     per_pair = {
         "scikit-image structural_similarity, loop": (n, lambda: np.array([skimage_ssim(a[i], b[i]) for i in range(n)])),
-        "torch float64 (previous colour_ssim), batched": (n, lambda: metrics._torch_colour_ssim(a[:n], b[:n])),
         "numba float64 fused kernel (colour_ssim), batched, 1 thread": (n, lambda: one_thread(colour_ssim, a[:n], b[:n])),
         f"numba float64 fused kernel (colour_ssim), batched, {threads} threads": (n, lambda: colour_ssim(a[:n], b[:n])),
     }
     set_to_set = {
         f"set-to-set: scikit-image double loop ({s}x{s})": (s * s, lambda: np.array(
             [[skimage_ssim(a[i], b[j]) for j in range(s)] for i in range(s)])),
-        f"set-to-set: torch float64 (previous pairwise_colour_ssim), {k}x{k}": (k * k, lambda: metrics._torch_pairwise_colour_ssim(a[:k], b[:k])),
         f"set-to-set: numba pairwise_colour_ssim, {k}x{k}": (k * k, lambda: pairwise_colour_ssim(a[:k], b[:k])),
     }
     methods = {name: function for name, (_, function) in {**per_pair, **set_to_set}.items()}
     seconds, results = interleaved_medians(methods, args.repeats)
 
-    print(f"CPU: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; torch {torch.__version__}, "
-          f"numba {numba.__version__}, {args.threads} torch threads, {threads} numba threads; images {args.size}x{args.size}x3 uint8; "
+    print(f"CPU: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
+          f"numba {numba.__version__}, {threads} numba threads; images {args.size}x{args.size}x3 uint8; "
           f"median of {args.repeats} interleaved rounds\n")
     print("| method | pairs | ms per pair | x vs scikit-image | max abs diff vs scikit-image |")
     print("|---|---|---|---|---|")
@@ -172,7 +172,7 @@ def main() -> None:
         (import_cold, cold), (import_warm, warm) = first_call_seconds(args.size)
         print(f"first call of colour_ssim in a fresh process (one {args.size}x{args.size}x3 uint8 pair): "
               f"{cold:.2f} s with an empty numba cache (compiling), {warm:.2f} s with the cache (loading); "
-              f"importing vtgen.metrics: {import_cold:.2f} s / {import_warm:.2f} s")
+              f"importing vtgen.core.metrics: {import_cold:.2f} s / {import_warm:.2f} s")
 
 
 if __name__ == "__main__":

@@ -1,9 +1,10 @@
-"""Image-similarity metrics: SSIM per channel (Colour-SSIM), luma SSIM, PSNR, MS-SSIM.
+"""Image-similarity metrics: SSIM per channel (Colour-SSIM), luma SSIM, set-to-set SSIM, PSNR.
 
 Every function takes two images of the same shape, channels last: one image ``(H, W, C)`` or a
-batch ``(N, H, W, C)``, as numpy arrays or torch tensors, ``uint8`` or floating. It returns
-float64 numpy scores: shape ``(N,)`` for a batch, a 0-d array for a single image (``float(s)``
-or ``s.item()`` gives the number). ``pairwise_colour_ssim`` returns the ``(N, M)`` matrix.
+batch ``(N, H, W, C)``, as numpy arrays or torch tensors (converted to numpy on the CPU), of an
+integer or real floating dtype. It returns float64 numpy scores: shape ``(N,)`` for a batch, a
+0-d array for a single image (``float(s)`` or ``s.item()`` gives the number).
+``pairwise_colour_ssim`` returns the ``(N, M)`` matrix.
 
 ``data_range`` (the ``L`` of the formulas, the distance between the darkest and the brightest
 possible value) defaults to 255 for ``uint8`` images and must be given for any other dtype, as
@@ -13,20 +14,18 @@ SSIM follows Wang et al. (2004) as scikit-image computes it with ``gaussian_weig
 sigma=1.5, use_sample_covariance=False``: local statistics under an 11-tap Gaussian window
 (sigma 1.5, radius 5, weights normalised to sum 1), population covariance, and the mean of the
 SSIM map over the pixels where the window lies inside the image, which makes the filtering a
-separable "valid" convolution with no padding. Scores agree with scikit-image to about 1e-13
-on float64 input (``dtype=torch.float64``, the default). Images smaller than the window (11 px)
-are refused, and MS-SSIM needs ``ms_ssim_min_size()`` px.
+separable "valid" convolution with no padding. Scores agree with scikit-image to about 1e-13.
+Images smaller than the window (11 px) are refused.
 
-Colour-SSIM, grey SSIM and set-to-set SSIM in float64 on CPU (the default) run in one fused
-numba kernel (``_ssim_band_sums``), compiled on first use and cached on disk where a cache
-directory is writable. Everything else (``dtype=torch.float32``, tensors on a GPU, MS-SSIM)
-runs in torch on the device of ``a`` (CPU for numpy input), in chunks of images small enough to
-stay near the CPU cache. torch's and numba's thread settings are left alone.
+There is one SSIM implementation: a fused float64 numba kernel (``_ssim_band_sums``) on the
+CPU, compiled on first use and cached on disk where a cache directory is writable; Colour-SSIM,
+grey SSIM (the SSIM of the luma image) and set-to-set SSIM all run in it. numba's thread
+setting is left alone. There is no multi-scale SSIM (MS-SSIM): it needs images of at least
+161 px (the window at the fifth scale), larger than the pipeline's tiles.
 
 References: Z. Wang, A. C. Bovik, H. R. Sheikh, E. P. Simoncelli, "Image quality assessment:
-from error visibility to structural similarity", IEEE TIP 13 (2004). Z. Wang, E. P. Simoncelli,
-A. C. Bovik, "Multiscale structural similarity for image quality assessment", Asilomar 2003.
-J.-T. Lee, D. Bollegala, S. Luo, "'Touching to see' and 'seeing to feel'", ICRA 2019 (Colour-SSIM).
+from error visibility to structural similarity", IEEE TIP 13 (2004). J.-T. Lee, D. Bollegala,
+S. Luo, "'Touching to see' and 'seeing to feel'", ICRA 2019 (Colour-SSIM).
 """
 
 from __future__ import annotations
@@ -35,18 +34,14 @@ import math
 
 import numba
 import numpy as np
-import torch
-import torch.nn.functional as F
 
-__all__ = ["colour_ssim", "grey_ssim", "psnr", "ms_ssim", "ms_ssim_min_size", "pairwise_colour_ssim"]
+__all__ = ["colour_ssim", "grey_ssim", "psnr", "pairwise_colour_ssim"]
 
 K1, K2 = 0.01, 0.03
 SIGMA = 1.5
 RADIUS = 5  # int(3.5 * SIGMA + 0.5): scikit-image's truncate=3.5 with sigma 1.5
 WINDOW = 2 * RADIUS + 1
 LUMA_WEIGHTS = (0.299, 0.587, 0.114)  # ITU-R BT.601
-MS_SSIM_WEIGHTS = (0.0448, 0.2856, 0.3001, 0.2363, 0.1333)  # Wang, Simoncelli & Bovik (2003)
-CHUNK_ELEMENTS = 1 << 19  # elements of the maps filtered at once (4 MiB in float64), near the caches
 
 
 def _gaussian_taps() -> list[float]:
@@ -63,39 +58,35 @@ TAPS = _gaussian_taps()
 # input checks
 
 
-def _as_tensor(image, name: str) -> torch.Tensor:
-    if isinstance(image, torch.Tensor):
-        return image.detach()
+def _as_batch(image, name: str, channels: tuple[int, ...]) -> tuple[np.ndarray, tuple[int, ...]]:
+    """``image`` as an (N, H, W, C) numpy array, and its shape as given (3-D for a single image).
+    A torch tensor is detached and copied to the CPU (floating ones as float64, which is exact);
+    torch itself is not imported here."""
+    if hasattr(image, "detach"):
+        image = image.detach().cpu()
+        image = (image.double() if image.is_floating_point() else image).numpy()
     array = np.asarray(image)
-    if not array.dtype.isnative:
-        array = array.astype(array.dtype.newbyteorder("="))
-    return torch.from_numpy(np.ascontiguousarray(array))
-
-
-def _as_batch(image, name: str, channels: tuple[int, ...]) -> tuple[torch.Tensor, tuple[int, ...]]:
-    """``image`` as an (N, H, W, C) tensor, and its shape as given (3-D for a single image)."""
-    tensor = _as_tensor(image, name)
-    shape = tuple(tensor.shape)
-    if tensor.ndim not in (3, 4):
+    shape = array.shape
+    if array.ndim not in (3, 4):
         raise ValueError(f"{name} has shape {shape}: expected one image (H, W, C) "
                          f"or a batch (N, H, W, C), channels last")
     if shape[-1] not in channels:
         raise ValueError(f"{name} has shape {shape}: expected C = "
                          f"{' or '.join(map(str, channels))} channels in the last axis")
-    if tensor.dtype == torch.bool or tensor.is_complex():
-        raise ValueError(f"{name} has dtype {tensor.dtype}: expected uint8 or a real floating dtype")
-    if tensor.is_floating_point():
-        if torch.isnan(tensor).any():
+    if array.dtype.kind not in "uif":
+        raise ValueError(f"{name} has dtype {array.dtype}: expected uint8 or a real floating dtype")
+    if array.dtype.kind == "f":
+        if np.isnan(array).any():
             raise ValueError(f"{name} contains NaN values")
-        if torch.isinf(tensor).any():
+        if np.isinf(array).any():
             raise ValueError(f"{name} contains infinite values")
-    return (tensor.unsqueeze(0) if tensor.ndim == 3 else tensor), shape
+    return (array[None] if array.ndim == 3 else array), shape
 
 
-def _resolve_data_range(a: torch.Tensor, b: torch.Tensor, data_range: float | None) -> float:
+def _resolve_data_range(a: np.ndarray, b: np.ndarray, data_range: float | None) -> float:
     """L: the caller's ``data_range``, or 255 when both images are uint8."""
     if data_range is None:
-        if a.dtype == torch.uint8 and b.dtype == torch.uint8:
+        if a.dtype == b.dtype == np.uint8:
             return 255.0
         raise ValueError(f"images of dtype {a.dtype}/{b.dtype} need an explicit data_range (the distance "
                          f"between the smallest and largest possible value, e.g. 1.0 for floats in [0, 1]); "
@@ -106,204 +97,18 @@ def _resolve_data_range(a: torch.Tensor, b: torch.Tensor, data_range: float | No
     return data_range
 
 
-def _check_pair(a, b, channels: tuple[int, ...]) -> tuple[torch.Tensor, torch.Tensor, bool]:
-    """Both images as (N, H, W, C) tensors on a's device, and whether they were single images."""
+def _check_pair(a, b, channels: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Both images as (N, H, W, C) arrays, and whether they were single images."""
     x, a_shape = _as_batch(a, "a", channels)
     y, b_shape = _as_batch(b, "b", channels)
     if a_shape != b_shape:
         raise ValueError(f"a and b must have the same shape, got {a_shape} and {b_shape}")
-    return x, y.to(x.device), len(a_shape) == 3
+    return x, y, len(a_shape) == 3
 
 
-def _check_window(height: int, width: int, minimum: int = WINDOW,
-                  what: str = "the 11x11 Gaussian window of SSIM") -> None:
-    if height < minimum or width < minimum:
-        raise ValueError(f"image is {height}x{width}, smaller than {what}")
-
-
-def _result(scores: torch.Tensor | np.ndarray, single: bool) -> np.ndarray:
-    out = scores if isinstance(scores, np.ndarray) else scores.detach().to("cpu", torch.float64).numpy()
-    return out[0] if single else out
-
-
-def _chunks(n: int, per_item: int, limit: int | None = None):
-    """Slices of range(n) holding about CHUNK_ELEMENTS / per_item items each (at most ``limit``)."""
-    size = max(1, CHUNK_ELEMENTS // max(per_item, 1))
-    if limit is not None:
-        size = max(1, min(size, limit))
-    for start in range(0, n, size):
-        yield slice(start, min(start + size, n))
-
-
-def _check_dtype(dtype: torch.dtype) -> None:
-    if dtype not in (torch.float64, torch.float32):
-        raise ValueError(f"dtype must be torch.float64 or torch.float32, got {dtype}")
-
-
-# ---------------------------------------------------------------------------------------------
-# filtering and the SSIM formula
-
-
-class _Workspace:
-    """Scratch buffers reused by the chunks of one call, by name: a fresh multi-megabyte tensor
-    per operation costs page faults that take as long as the arithmetic."""
-
-    def __init__(self, device: torch.device):
-        self.device = device
-        self._flat: dict[str, torch.Tensor] = {}
-
-    def take(self, name: str, shape: tuple[int, ...], dtype: torch.dtype = torch.float64) -> torch.Tensor:
-        size = math.prod(shape)
-        flat = self._flat.get(name)
-        if flat is None or flat.dtype != dtype or flat.numel() < size:
-            flat = self._flat[name] = torch.empty(size, dtype=dtype, device=self.device)
-        return flat[:size].view(shape)
-
-
-# The float64 filter adds the taps from the centre outwards as a running weighted average,
-# one ``lerp`` per tap: after tap j the buffer holds sum_{i<=j} g_i x_i / sum_{i<=j} g_i, and
-# after the last, the weights summing to 1, the filtered value. Ten passes over memory instead
-# of eleven (a scaling and ten multiply-adds): 17% faster in float64; in float32 lerp is slower.
-CENTRE_OUT = sorted(range(WINDOW), key=lambda i: (abs(i - RADIUS), i))
-LERP_WEIGHTS = [TAPS[i] / sum(TAPS[j] for j in CENTRE_OUT[:k + 1]) for k, i in enumerate(CENTRE_OUT)]
-
-
-def _filter_axis(shifted, out: torch.Tensor) -> torch.Tensor:
-    """out = sum_s TAPS[s] * shifted(s) for s = 0..10, where shifted(s) is the input moved by s."""
-    if out.dtype == torch.float64:
-        torch.lerp(shifted(CENTRE_OUT[0]), shifted(CENTRE_OUT[1]), LERP_WEIGHTS[1], out=out)
-        for shift, weight in zip(CENTRE_OUT[2:], LERP_WEIGHTS[2:]):
-            out.lerp_(shifted(shift), weight)
-    else:
-        torch.mul(shifted(RADIUS), TAPS[RADIUS], out=out)
-        for shift, tap in enumerate(TAPS):
-            if shift != RADIUS:
-                out.add_(shifted(shift), alpha=tap)
-    return out
-
-
-def _gaussian_valid(maps: torch.Tensor, workspace: _Workspace) -> torch.Tensor:
-    """Separable 11-tap Gaussian "valid" filtering of (n, K, H, W) maps -> (n, K, H - 10, W - 10).
-
-    Output pixel (i, j) is sum_{u,v} g_u g_v maps[..., i + u, j + v] with g = ``TAPS``: what
-    scipy's ``gaussian_filter(sigma=1.5, truncate=3.5)`` gives at (i + 5, j + 5), a value that
-    only reads the image interior. Each axis is a sum of shifted slices, in the dtype of
-    ``maps``; the result is a float64 workspace buffer (use it before the next call).
-
-    Design notes: on CPU this is memory bound (each pass reads two maps and writes one), so
-    callers filter chunks of about ``CHUNK_ELEMENTS``, near the cache sizes. torch's float64
-    conv2d is several times slower than these slices; oneDNN's float32 depthwise convolution is
-    faster in isolation but needs channels-last copies and fresh output tensors, whose page
-    faults cost about what it saves.
-    """
-    n, k, height, width = maps.shape
-    out_h, out_w = height - 2 * RADIUS, width - 2 * RADIUS
-    maps = maps.contiguous()
-    vertical = _filter_axis(lambda s: maps[:, :, s:s + out_h],
-                            workspace.take("vertical", (n, k, out_h, width), maps.dtype))
-    filtered = _filter_axis(lambda s: vertical[..., s:s + out_w],
-                            workspace.take("filtered", (n, k, out_h, out_w), maps.dtype))
-    if filtered.dtype == torch.float64:
-        return filtered
-    return workspace.take("filtered float64", filtered.shape).copy_(filtered)
-
-
-def _planar(images: torch.Tensor, dtype: torch.dtype, workspace: _Workspace, name: str) -> torch.Tensor:
-    """(n, H, W, C) images of any dtype -> contiguous (n, C, H, W) workspace buffer in ``dtype``.
-    Done once per chunk, transposing before converting: the other order and strided
-    single-channel views cost several times more."""
-    n, height, width, channels = images.shape
-    planar = workspace.take(name, (n, channels, height, width), dtype)
-    if images.dtype == dtype:
-        return planar.copy_(images.permute(0, 3, 1, 2))
-    transposed = workspace.take(name + " transposed", (n, channels, height, width), images.dtype)
-    return planar.copy_(transposed.copy_(images.permute(0, 3, 1, 2)))
-
-
-def _centre_into(planar: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
-    """Write x - c of (n, C, H, W) images into ``out`` (same dtype), c being each channel's mean
-    rounded to that dtype; return c as (n, C, 1, 1) float64.
-
-    SSIM's (co)variances do not change under a shift, and centred values keep E[x^2] - mu^2
-    from cancelling catastrophically (which matters in float32; in float64 it is harmless). In
-    float32, x - c is exact for uint8 x (both are multiples of 2^-16 below 256), and c is the
-    value actually subtracted, so mu = E[x'] + c stays consistent.
-    """
-    offsets = planar.mean(dim=(2, 3), keepdim=True)  # any consistent shift works; this one is small
-    torch.sub(planar, offsets, out=out)
-    return offsets.to(torch.float64)
-
-
-def _ssim_terms(mean_x, mean_y, offset_x, offset_y, second_sum, cross, data_range: float, workspace: _Workspace,
-                want_cs: bool = False):
-    """Per-channel means of the SSIM map and (if ``want_cs``, else None) of its contrast-structure
-    map: (n, C) tensors.
-
-    Inputs are float64 Gaussian-filtered statistics of centred images x' = x - c_x,
-    y' = y - c_y: mean_x = E[x'], mean_y = E[y'] (may broadcast), second_sum = E[x'^2] + E[y'^2]
-    and cross = E[x'y'], both (n, C, h, w) and overwritten. With mu = E[x'] + c,
-    sigma_x^2 + sigma_y^2 = second_sum - E[x']^2 - E[y']^2, sigma_xy = cross - E[x']E[y'],
-    C1 = (K1 L)^2, C2 = (K2 L)^2:
-
-        cs   = (2 sigma_xy + C2) / (sigma_x^2 + sigma_y^2 + C2)
-        SSIM = (2 mu_x mu_y + C1) / (mu_x^2 + mu_y^2 + C1) * cs
-
-    For x == y both maps come out exactly 1: numerator and denominator agree bit for bit (only
-    plain products and sums, no fused multiply-add, whose single rounding would break the tie).
-    """
-    c1 = (K1 * data_range) ** 2
-    c2 = (K2 * data_range) ** 2
-    shape = cross.shape
-    mean_x, mean_y = mean_x.expand(shape), mean_y.expand(shape)
-    mu_x = torch.add(mean_x, offset_x, out=workspace.take("mu_x", shape))
-    mu_y = torch.add(mean_y, offset_y, out=workspace.take("mu_y", shape))
-    luminance_num = torch.mul(mu_x, mu_y, out=workspace.take("luminance_num", shape)).mul_(2).add_(c1)
-    luminance_den = torch.mul(mu_x, mu_x, out=workspace.take("luminance_den", shape))
-    luminance_den.add_(torch.mul(mu_y, mu_y, out=mu_x)).add_(c1)
-    contrast_num = cross.sub_(torch.mul(mean_x, mean_y, out=mu_x)).mul_(2).add_(c2)
-    squares = torch.mul(mean_x, mean_x, out=mu_x).add_(torch.mul(mean_y, mean_y, out=mu_y))
-    contrast_den = second_sum.sub_(squares).add_(c2)
-    ssim = luminance_num.mul_(contrast_num).div_(luminance_den.mul_(contrast_den)).mean(dim=(-2, -1))
-    return ssim, (contrast_num.div_(contrast_den).mean(dim=(-2, -1)) if want_cs else None)
-
-
-def _ssim_per_channel(x: torch.Tensor, y: torch.Tensor, data_range: float, dtype: torch.dtype,
-                      workspace: _Workspace, want_cs: bool = False):
-    """SSIM and cs (None unless ``want_cs``), each (n, C), of (n, C, H, W) image pairs in
-    ``dtype`` (one chunk): filters the maps x', y', x'^2 + y'^2 and x'y' of the centred images."""
-    n, channels, height, width = x.shape
-    maps = workspace.take("maps", (n, 4 * channels, height, width), dtype)
-    xc, yc, squares, cross = maps.split(channels, dim=1)
-    offset_x = _centre_into(x, xc)
-    offset_y = _centre_into(y, yc)
-    torch.mul(xc, xc, out=squares).add_(torch.mul(yc, yc, out=cross))
-    torch.mul(xc, yc, out=cross)
-    mean_x, mean_y, second_sum, cross = _gaussian_valid(maps, workspace).split(channels, dim=1)
-    return _ssim_terms(mean_x, mean_y, offset_x, offset_y, second_sum, cross, data_range, workspace, want_cs)
-
-
-def _chunked_per_channel(x: torch.Tensor, y: torch.Tensor, dtype: torch.dtype, score) -> torch.Tensor:
-    """(n, C) float64 tensor of ``score(x_part, y_part, workspace)`` over chunks of images; the
-    parts are planar (n', C, H, W) in ``dtype``."""
-    n, height, width, channels = x.shape
-    workspace = _Workspace(x.device)
-    per_channel = torch.empty((n, channels), dtype=torch.float64, device=x.device)
-    for part in _chunks(n, 4 * channels * height * width):
-        x_planar, y_planar = _planar(x[part], dtype, workspace, "x"), _planar(y[part], dtype, workspace, "y")
-        per_channel[part] = score(x_planar, y_planar, workspace)
-    return per_channel
-
-
-def _colour_ssim_batch(x: torch.Tensor, y: torch.Tensor, data_range: float, dtype: torch.dtype,
-                      use_kernel: bool = True) -> np.ndarray:
-    """Colour-SSIM (n,) float64 of (n, H, W, C) pairs: the numba kernel where ``_use_kernel``
-    (unless ``use_kernel`` is False), else torch."""
-    _check_window(x.shape[1], x.shape[2])
-    if use_kernel and _use_kernel(x, dtype):
-        pairs = np.arange(x.shape[0])
-        return _kernel_ssim(*_kernel_arrays(x, y), pairs, pairs, data_range)
-    score = lambda xs, ys, workspace: _ssim_per_channel(xs, ys, data_range, dtype, workspace)[0]
-    return _result(_chunked_per_channel(x, y, dtype, score).mean(dim=1), False)
+def _check_window(height: int, width: int) -> None:
+    if height < WINDOW or width < WINDOW:
+        raise ValueError(f"image is {height}x{width}, smaller than the 11x11 Gaussian window of SSIM")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -448,16 +253,12 @@ def _ssim_band_sums(x, y, first, second, x_offsets, y_offsets, c1, c2):
     return sums
 
 
-def _use_kernel(x: torch.Tensor, dtype: torch.dtype) -> bool:
-    """Whether SSIM of these images runs in the numba kernel: float64 computation on CPU."""
-    return dtype == torch.float64 and x.device.type == "cpu"
 
-
-def _kernel_arrays(x: torch.Tensor, y: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-    """(n, H, W, C) CPU tensors as C-contiguous numpy arrays of one dtype the kernel is compiled
+def _kernel_arrays(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n, H, W, C) arrays as C-contiguous native arrays of one dtype the kernel is compiled
     for: uint8 when both are, else float64 (exact for every other input dtype)."""
-    dtype = torch.uint8 if x.dtype == y.dtype == torch.uint8 else torch.float64
-    return tuple(np.ascontiguousarray(t.to(dtype).numpy()) for t in (x, y))
+    dtype = np.uint8 if x.dtype == y.dtype == np.uint8 else np.float64
+    return np.ascontiguousarray(x, dtype=dtype), np.ascontiguousarray(y, dtype=dtype)
 
 
 def _kernel_ssim(x: np.ndarray, y: np.ndarray, first: np.ndarray, second: np.ndarray, data_range: float,
@@ -475,11 +276,18 @@ def _kernel_ssim(x: np.ndarray, y: np.ndarray, first: np.ndarray, second: np.nda
     return (sums.sum(axis=2) / positions).mean(axis=1)
 
 
+def _paired_ssim(x: np.ndarray, y: np.ndarray, data_range: float) -> np.ndarray:
+    """SSIM (n,) of the pairs (x[i], y[i]) of (n, H, W, C) arrays, averaged over the channels."""
+    _check_window(x.shape[1], x.shape[2])
+    pairs = np.arange(x.shape[0])
+    return _kernel_ssim(*_kernel_arrays(x, y), pairs, pairs, data_range)
+
+
 # ---------------------------------------------------------------------------------------------
 # public metrics
 
 
-def colour_ssim(a, b, data_range: float | None = None, *, dtype: torch.dtype = torch.float64) -> np.ndarray:
+def colour_ssim(a, b, data_range: float | None = None) -> np.ndarray:
     """Colour-SSIM: SSIM (Wang et al. 2004) of each channel, averaged over the channels.
 
     SSIM(x, y) = mean over the valid window positions of
@@ -487,16 +295,12 @@ def colour_ssim(a, b, data_range: float | None = None, *, dtype: torch.dtype = t
     C1 = (0.01 L)^2, C2 = (0.03 L)^2, L = ``data_range``, local statistics under the 11x11
     Gaussian window (sigma 1.5), population covariance. Equals scikit-image's
     ``structural_similarity(a, b, channel_axis=-1, gaussian_weights=True, sigma=1.5,
-    use_sample_covariance=False, data_range=L)`` (to ~1e-13 on float64 input).
+    use_sample_covariance=False, data_range=L)`` (to ~1e-13), computed in float64.
 
     Parameters
     ----------
     a, b : array or tensor, (H, W, C) or (N, H, W, C), C = 1 or 3, same shape
     data_range : L; default 255 for uint8 input, required otherwise
-    dtype : torch.float64 (default; exact to rounding; on CPU the fused numba kernel) or
-        torch.float32 (torch: the filtering runs in float32 on mean-centred images, the formula
-        in float64; differs from float64 by ~1e-7 on natural images, up to a few 1e-6 on
-        high-contrast ones; on CPU slower than the float64 kernel, meant for GPU tensors)
 
     Returns
     -------
@@ -515,38 +319,23 @@ def colour_ssim(a, b, data_range: float | None = None, *, dtype: torch.dtype = t
     65031.5025 ~ 9.999e-5. Variances are not clamped, as in scikit-image: the denominator
     sigma_x^2 + sigma_y^2 + C2 stays >= C2 > 0 up to rounding of order 1e-16 L^2.
     """
-    return _colour_ssim(a, b, data_range, dtype, use_kernel=True)
-
-
-def _colour_ssim(a, b, data_range: float | None, dtype: torch.dtype, use_kernel: bool) -> np.ndarray:
-    _check_dtype(dtype)
     x, y, single = _check_pair(a, b, (1, 3))
-    data_range = _resolve_data_range(x, y, data_range)
-    return _result(_colour_ssim_batch(x, y, data_range, dtype, use_kernel), single)
+    scores = _paired_ssim(x, y, _resolve_data_range(x, y, data_range))
+    return scores[0] if single else scores
 
 
-def _torch_colour_ssim(a, b, data_range: float | None = None, *, dtype: torch.dtype = torch.float64) -> np.ndarray:
-    """:func:`colour_ssim` computed in torch whatever the device (the path before the numba
-    kernel, kept for the GPU and float32; benchmarks and tests compare against it)."""
-    return _colour_ssim(a, b, data_range, dtype, use_kernel=False)
-
-
-def grey_ssim(a, b, data_range: float | None = None, *, dtype: torch.dtype = torch.float64) -> np.ndarray:
+def grey_ssim(a, b, data_range: float | None = None) -> np.ndarray:
     """SSIM of the luma images Y = 0.299 R + 0.587 G + 0.114 B (ITU-R BT.601).
 
     Inputs are RGB (C = 3), shapes and ``data_range`` as in :func:`colour_ssim` (luma keeps the
     range of the channels, so L is unchanged); the luma is computed in float64 and scored by the
-    same single-channel SSIM. Returns float64 (N,) or 0-d; raises as :func:`colour_ssim`.
+    same kernel, as one channel. Returns float64 (N,) or 0-d; raises as :func:`colour_ssim`.
     """
-    _check_dtype(dtype)
     x, y, single = _check_pair(a, b, (3,))
     data_range = _resolve_data_range(x, y, data_range)
-    _check_window(x.shape[1], x.shape[2])
-    weights = torch.tensor(LUMA_WEIGHTS, dtype=torch.float64, device=x.device)
-    luma = lambda images: (images.to(torch.float64) * weights).sum(dim=-1, keepdim=True)
-    scores = [_colour_ssim_batch(luma(x[part]), luma(y[part]), data_range, dtype)
-              for part in _chunks(x.shape[0], x[0].numel())]
-    return _result(np.concatenate(scores) if scores else np.empty(0), single)
+    luma = lambda images: (images @ np.array(LUMA_WEIGHTS))[..., None]
+    scores = _paired_ssim(luma(x), luma(y), data_range)
+    return scores[0] if single else scores
 
 
 def psnr(a, b, data_range: float | None = None) -> np.ndarray:
@@ -558,200 +347,43 @@ def psnr(a, b, data_range: float | None = None) -> np.ndarray:
     """
     x, y, single = _check_pair(a, b, (1, 3))
     data_range = _resolve_data_range(x, y, data_range)
-    mse = np.empty(x.shape[0], dtype=np.float64)
-    per_image = x[0].numel() if x.shape[0] else 1
-    for part in _chunks(x.shape[0], per_image):
-        difference = x[part].to(torch.float64) - y[part].to(torch.float64)
-        mse[part] = difference.square_().mean(dim=(1, 2, 3)).cpu().numpy()
+    mse = np.square(x.astype(np.float64) - y.astype(np.float64)).mean(axis=(1, 2, 3))
     with np.errstate(divide="ignore"):
         scores = 10 * np.log10(data_range**2 / mse)
     return scores[0] if single else scores
 
 
-def ms_ssim_min_size() -> int:
-    """Smallest image side :func:`ms_ssim` accepts: 161 px.
-
-    Each of the four 2x2 downsamplings maps a side s to ceil(s / 2), and the fifth (coarsest)
-    scale must still hold the 11 px window: ceil(s / 16) >= 11, i.e. s >= (11 - 1) * 2^4 + 1.
-    """
-    side = WINDOW
-    for _ in MS_SSIM_WEIGHTS[1:]:
-        side = 2 * side - 1
-    return side
-
-
-def _halve(images: torch.Tensor) -> torch.Tensor:
-    """2x2 average pooling of (n, C, H, W) images to ceil(H/2) x ceil(W/2); an odd last row or
-    column is averaged over the pixels that exist."""
-    return F.avg_pool2d(images, kernel_size=2, stride=2, ceil_mode=True)
-
-
-def ms_ssim(a, b, data_range: float | None = None, *, dtype: torch.dtype = torch.float64) -> np.ndarray:
-    """Multi-scale SSIM (Wang, Simoncelli & Bovik 2003), per channel and averaged over channels.
-
-    MS-SSIM = prod_{j=1..4} max(cs_j, 0)^{w_j} * max(SSIM_5, 0)^{w_5}, w = (0.0448, 0.2856,
-    0.3001, 0.2363, 0.1333), where cs_j is the mean contrast-structure map
-    (2 sigma_xy + C2) / (sigma_x^2 + sigma_y^2 + C2) at scale j, SSIM_5 the SSIM of
-    :func:`colour_ssim` at the coarsest scale, each with the same 11-tap Gaussian valid window,
-    and scale j + 1 is scale j 2x2 average-pooled (see ``_halve``). Negative cs or SSIM (anti-
-    correlated structure) is clamped at 0 before the power, as pytorch-msssim does, so the score
-    lies in [0, 1].
-
-    Shapes, C = 1 or 3, ``data_range`` and ``dtype`` as in :func:`colour_ssim`; both sides must
-    be at least ``ms_ssim_min_size()`` (161) px, else ValueError. Identical images score exactly 1.
-    Returns float64 (N,) or 0-d.
-    """
-    _check_dtype(dtype)
-    x, y, single = _check_pair(a, b, (1, 3))
-    data_range = _resolve_data_range(x, y, data_range)
-    n, height, width, channels = x.shape
-    minimum = ms_ssim_min_size()
-    _check_window(height, width, minimum, f"the {minimum}x{minimum} minimum of MS-SSIM (ms_ssim_min_size())")
-    weights = torch.tensor(MS_SSIM_WEIGHTS, dtype=torch.float64, device=x.device)
-
-    def score(xs: torch.Tensor, ys: torch.Tensor, workspace: _Workspace) -> torch.Tensor:
-        factors = []
-        for scale in range(len(MS_SSIM_WEIGHTS)):
-            ssim, cs = _ssim_per_channel(xs, ys, data_range, dtype, workspace, want_cs=True)
-            if scale == len(MS_SSIM_WEIGHTS) - 1:
-                factors.append(ssim)
-            else:
-                factors.append(cs)
-                xs, ys = _halve(xs), _halve(ys)
-        return torch.stack(factors).clamp_(min=0).pow_(weights.view(-1, 1, 1)).prod(dim=0)
-
-    return _result(_chunked_per_channel(x, y, dtype, score).mean(dim=1), single)
-
-
-def _image_statistics(images: torch.Tensor, data_range: float, dtype: torch.dtype, workspace: _Workspace,
-                      keep: bool):
-    """The per-image parts of SSIM for (n, H, W, C) images, computed once for every pair an image
-    is in: the centred images x' (n, C, H, W) in ``dtype``, and float64 (n, C, H-10, W-10) maps
-    E[x'], mu = E[x'] + c, mu^2 + C1/2 and sigma^2 + C2/2 (sigma^2 = E[x'^2] - E[x']^2). In new
-    tensors if ``keep``, else in workspace buffers (valid until the next call)."""
-    n, height, width, channels = images.shape
-    maps = workspace.take("maps", (n, 2 * channels, height, width), dtype)
-    centred, squares = maps.split(channels, dim=1)
-    offsets = _centre_into(_planar(images, dtype, workspace, "x"), centred)
-    torch.mul(centred, centred, out=squares)
-    mean, second = _gaussian_valid(maps, workspace).split(channels, dim=1)
-    shape = mean.shape
-
-    def new(name: str, shape, dtype=torch.float64) -> torch.Tensor:
-        if keep:
-            return torch.empty(shape, dtype=dtype, device=images.device)
-        return workspace.take("statistics " + name, shape, dtype)
-
-    centred = new("centred", centred.shape, dtype).copy_(centred)
-    mean = new("mean", shape).copy_(mean)
-    mu = torch.add(mean, offsets, out=new("mu", shape))
-    luminance_half = torch.mul(mu, mu, out=new("luminance", shape)).add_((K1 * data_range) ** 2 / 2)
-    contrast_half = torch.mul(mean, mean, out=new("contrast", shape))
-    contrast_half = torch.sub(second, contrast_half, out=contrast_half).add_((K2 * data_range) ** 2 / 2)
-    return centred, mean, mu, luminance_half, contrast_half
-
-
-def _pair_ssim(stats_x, stats_y, cross: torch.Tensor, data_range: float, workspace: _Workspace) -> torch.Tensor:
-    """Per-channel SSIM (k, C) of image pairs from their per-image statistics (each may
-    broadcast over the k pairs) and the filtered cross moment E[x'y'] (k, C, h, w, overwritten):
-
-        SSIM = (2 mu_x mu_y + C1)(2 (E[x'y'] - E[x']E[y']) + C2)
-               / (((mu_x^2 + C1/2) + (mu_y^2 + C1/2)) ((sigma_x^2 + C2/2) + (sigma_y^2 + C2/2)))
-
-    For x == y numerator and denominator agree bit for bit, as in ``_ssim_terms``.
-    """
-    _, mean_x, mu_x, luminance_x, contrast_x = stats_x
-    _, mean_y, mu_y, luminance_y, contrast_y = stats_y
-    shape = cross.shape
-    scratch = workspace.take("scratch", shape)
-    contrast_num = cross.sub_(torch.mul(mean_x, mean_y, out=scratch)).mul_(2).add_((K2 * data_range) ** 2)
-    luminance_num = torch.mul(mu_x, mu_y, out=workspace.take("luminance_num", shape)).mul_(2)
-    luminance_num.add_((K1 * data_range) ** 2).mul_(contrast_num)
-    denominator = torch.add(luminance_x, luminance_y, out=scratch)
-    denominator.mul_(torch.add(contrast_x, contrast_y, out=workspace.take("contrast_den", shape)))
-    return luminance_num.div_(denominator).mean(dim=(-2, -1))
-
-
-def pairwise_colour_ssim(a, b, data_range: float | None = None, batch_size: int = 256, *,
-                         dtype: torch.dtype = torch.float64) -> np.ndarray:
+def pairwise_colour_ssim(a, b, data_range: float | None = None, batch_size: int = 256) -> np.ndarray:
     """(N, M) matrix of :func:`colour_ssim` between every a[i] and every b[j] (set-to-set SSIM).
 
-    float64 on CPU: every pair runs through the fused kernel of :func:`colour_ssim` (recomputing
-    an image's statistics costs less than storing and reading them back), so entries equal
-    ``colour_ssim(a[i], b[j])`` bit for bit. Otherwise (float32, GPU) torch computes each image's
-    filtered mean E[x] and variance once and each pair adds only its filtered cross moment E[xy]
-    and the formula; entries equal colour_ssim to ~1e-15. Exactly 1 where a[i] == b[j].
+    Every pair runs through the kernel of :func:`colour_ssim`, which reuses each image's channel
+    means and recomputes its filtered statistics per pair (that costs less than storing and
+    reading them back), so entries equal ``colour_ssim(a[i], b[j])`` bit for bit; exactly 1 where
+    a[i] == b[j].
 
     Parameters
     ----------
     a : (N, H, W, C) or one (H, W, C) image (then N = 1); b : (M, H, W, C) or one image
         (M = 1); same H, W and C (1 or 3), same dtype rules and ``data_range`` as colour_ssim
-    batch_size : at most this many pairs are computed together (in torch fewer for large
-        images, to keep the working set near the cache); memory is bounded by it
-    dtype : as in :func:`colour_ssim`
+    batch_size : pairs per call of the kernel (its scratch memory is per task, not per pair)
 
     Returns
     -------
-    float64 array (N, M). In torch the statistics of the smaller set are held in memory: per
-    image C * H * W values of ``dtype`` and 4 C (H-10)(W-10) float64 values (SSIM is symmetric;
-    the larger set is streamed one image at a time).
+    float64 array (N, M).
     """
-    return _pairwise_colour_ssim(a, b, data_range, batch_size, dtype, use_kernel=True)
-
-
-def _torch_pairwise_colour_ssim(a, b, data_range: float | None = None, batch_size: int = 256, *,
-                                dtype: torch.dtype = torch.float64) -> np.ndarray:
-    """:func:`pairwise_colour_ssim` computed in torch whatever the device (see ``_torch_colour_ssim``)."""
-    return _pairwise_colour_ssim(a, b, data_range, batch_size, dtype, use_kernel=False)
-
-
-def _pairwise_colour_ssim(a, b, data_range: float | None, batch_size: int, dtype: torch.dtype,
-                          use_kernel: bool) -> np.ndarray:
-    _check_dtype(dtype)
     if int(batch_size) < 1:
         raise ValueError(f"batch_size must be at least 1, got {batch_size}")
     x, a_shape = _as_batch(a, "a", (1, 3))
     y, b_shape = _as_batch(b, "b", (1, 3))
     if x.shape[1:] != y.shape[1:]:
         raise ValueError(f"a and b must hold images of the same (H, W, C), got {a_shape} and {b_shape}")
-    y = y.to(x.device)
     data_range = _resolve_data_range(x, y, data_range)
     _check_window(*x.shape[1:3])
-    if use_kernel and _use_kernel(x, dtype):
-        return _kernel_pairwise(x, y, data_range, int(batch_size))
-    if x.shape[0] < y.shape[0]:
-        return _pairwise(y, x, data_range, int(batch_size), dtype).T.copy()
-    return _pairwise(x, y, data_range, int(batch_size), dtype)
-
-
-def _kernel_pairwise(x: torch.Tensor, y: torch.Tensor, data_range: float, batch_size: int) -> np.ndarray:
-    """(N, M) Colour-SSIM of every pair, ``batch_size`` pairs per call of the numba kernel."""
     n, m = x.shape[0], y.shape[0]
     xs, ys = _kernel_arrays(x, y)
     x_means, y_means = _channel_means(xs), _channel_means(ys)
     matrix = np.empty(n * m)
-    for start in range(0, n * m, batch_size):
-        pairs = np.arange(start, min(start + batch_size, n * m))
+    for start in range(0, n * m, int(batch_size)):
+        pairs = np.arange(start, min(start + int(batch_size), n * m))
         matrix[pairs] = _kernel_ssim(xs, ys, pairs // m, pairs % m, data_range, x_means, y_means)
     return matrix.reshape(n, m)
-
-
-def _pairwise(streamed: torch.Tensor, held: torch.Tensor, data_range: float, batch_size: int,
-              dtype: torch.dtype) -> np.ndarray:
-    n, height, width, channels = streamed.shape
-    m = held.shape[0]
-    per_channel = torch.empty((n, m, channels), dtype=torch.float64, device=streamed.device)
-    if n == 0 or m == 0:
-        return per_channel.mean(dim=2).cpu().numpy()
-    workspace = _Workspace(streamed.device)
-    held_parts = [_image_statistics(held[part], data_range, dtype, workspace, keep=True)
-                  for part in _chunks(m, 2 * channels * height * width)]
-    held_stats = [torch.cat(parts) for parts in zip(*held_parts)]
-    for i in range(n):
-        stats = _image_statistics(streamed[i:i + 1], data_range, dtype, workspace, keep=False)
-        for part in _chunks(m, 2 * channels * height * width, batch_size):
-            part_stats = [t[part] for t in held_stats]
-            products = workspace.take("maps", (part.stop - part.start, channels, height, width), dtype)
-            cross = _gaussian_valid(torch.mul(stats[0], part_stats[0], out=products), workspace)
-            per_channel[i, part] = _pair_ssim(stats, part_stats, cross, data_range, workspace)
-    return per_channel.mean(dim=2).cpu().numpy()
