@@ -5,7 +5,7 @@
 
 import yaml
 from vtgen.io.params import validate_params
-from vtgen.pipeline import snakemake_rule, stages
+from vtgen.pipeline import outputs, snakemake_rule, stages
 from vtgen.runlock import hold_run_lock
 
 configfile: "params.yaml"
@@ -22,16 +22,18 @@ validate_params(config)
 report: "workflow/report/workflow.rst"
 
 
+# The default target is every output of the main job, not only the report: Snakemake does not rebuild a
+# deleted intermediate output while the outputs after it exist, unless it is a target itself.
 rule all:
     default_target: True
     input:
-        "reports/index.html",
+        outputs(config, "main"),
 
 
 rule studies:
     """Every study (`snakemake studies`): trade-off, frontier, experiments, stability and their report."""
     input:
-        "reports/studies/index.html",
+        outputs(config, "studies"),
 
 
 for _stage in stages(config, "main") + stages(config, "studies"):
@@ -42,10 +44,10 @@ for _stage in stages(config, "main") + stages(config, "studies"):
         message: _stage.doc
         input: _spec["inputs"]
         output: [directory(p) if p in _spec["directories"] else p for p in _spec["outputs"]]
-        params: **_spec["params"]
+        params: command=_spec["command"], **_spec["params"]
         threads: _spec["threads"]
         wildcard_constraints: **_spec["constraints"]
-        shell: _spec["command"]
+        shell: "{params.command}"
 
 
 # One run at a time per project, Snakemake or DVC: the lock is the kernel's (flock), so a killed run

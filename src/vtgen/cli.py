@@ -171,7 +171,7 @@ def build_parser() -> argparse.ArgumentParser:
     generate.add_argument("--direction", required=True, choices=list(DIRECTIONS))
     generate.add_argument("--pairs", required=True, help="folder written by the pairs stage")
     generate.add_argument("--models", required=True, help="folder holding one trained model per scope entry")
-    score = stage("score", _score, "Colour-SSIM, PSNR, MS-SSIM of generated images, with reference levels")
+    score = stage("score", _score, "Colour-SSIM, grey SSIM and PSNR of generated images, with reference levels")
     score.add_argument("--pairs", required=True, help="folder written by the pairs stage")
     score.add_argument("--generated", required=True, help="folder holding one generate output per direction")
     classify = stage("classify", _classify, "texture classifier: real only vs real + generated, per modality")

@@ -277,7 +277,7 @@ def write_dvc_files(params: dict, root: Path, check: bool = False) -> list[Path]
 
 def snakemake_rule(stage: Stage, params: dict, root: Path | None = None) -> dict:
     """What the Snakefile's rule loop needs: inputs (wildcards of other stages expanded), outputs,
-    params values, threads and the shell command with ``{wildcards.x}``."""
+    params values, threads and the shell command (a function of the job's wildcards)."""
     root = root or PACKAGE_ROOT.parents[1]
     own = stage.wildcards()
     values = wildcard_values(params)
@@ -288,9 +288,6 @@ def snakemake_rule(stage: Stage, params: dict, root: Path | None = None) -> dict
             if name not in own:
                 paths = [p.replace("{" + name + "}", v) for p in paths for v in values[name]]
         inputs += paths
-    command = stage.command
-    for name in own:
-        command = command.replace("{" + name + "}", "{wildcards." + name + "}")
     outputs = list(stage.outputs) + list(stage.metrics) + list(stage.plots)
     return {
         "inputs": inputs + code_deps(stage, root),
@@ -300,5 +297,27 @@ def snakemake_rule(stage: Stage, params: dict, root: Path | None = None) -> dict
                    for key in stage.params},
         "threads": param_value(params, stage.threads) if stage.threads else 1,
         "constraints": {name: "|".join(re.escape(v) for v in values[name]) for name in own},
-        "command": command,
+        "command": _command_for(stage.command),
     }
+
+
+def outputs(params: dict, pipeline: str = "main") -> list[str]:
+    """Every output path of ``pipeline``'s jobs under ``params``. The Snakefile's default target asks for all
+    of them, so a deleted intermediate output is rebuilt, and everything after it reruns."""
+    values = wildcard_values(params)
+    found = []
+    for stage in stages(params, pipeline):
+        for path in (*stage.outputs, *stage.metrics, *stage.plots):
+            paths = [path]
+            for name in WILDCARD.findall(path):
+                paths = [p.replace("{" + name + "}", v) for p in paths for v in values[name]]
+            found += paths
+    return found
+
+
+def _command_for(template: str):
+    """The shell command of one job, as a Snakemake params function: the Snakefile's rule loop must not
+    read its loop variables when a job runs (they hold the last stage by then)."""
+    def command(wildcards) -> str:
+        return template.format(**dict(wildcards.items()))
+    return command

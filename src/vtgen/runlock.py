@@ -1,10 +1,15 @@
 """One run at a time per project: Snakemake and DVC exclude each other.
 
-The lock is an ``flock`` on ``.vtgen/run.lock`` in the project root. The kernel releases it when
-the holder exits, however it exits, so a killed run never leaves a lock that needs a manual
-unlock. A Snakemake run holds it from its start (``onstart``) to its end and passes the right to
-run to its jobs through :data:`OWNER_ENV`; a stage command started by anything else (``dvc
-repro``, ``dvc exp run``, a user) takes the lock itself for as long as it runs.
+Two ``flock`` files in ``.vtgen/``; the kernel releases a lock when its holder exits, however it
+exits, so a killed run never leaves a lock that needs a manual unlock.
+
+- ``run.lock``, held exclusively by whoever drives a run: a Snakemake run from its start
+  (``onstart``) to its end, or a stage command started by anything else (``dvc repro``, ``dvc exp
+  run``, a user) for as long as it runs. A second driver is refused with a message naming the first.
+- ``jobs.lock``, held shared by every running stage command. A new driver waits until nobody holds
+  it, so the jobs a killed Snakemake left running finish before a new run touches their outputs.
+
+A Snakemake run passes the right to run to its jobs through :data:`OWNER_ENV`.
 """
 
 from __future__ import annotations
@@ -13,13 +18,14 @@ import contextlib
 import fcntl
 import json
 import os
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
-LOCK_PATH = Path(".vtgen") / "run.lock"
+LOCK_DIR = Path(".vtgen")
 OWNER_ENV = "VTGEN_RUN_OWNER"
-_held: dict[Path, object] = {}  # lock path -> open handle: the lock lives while this process keeps it
+_held: dict[Path, object] = {}  # lock path -> open handle: a lock lives while this process keeps its handle
 
 
 class ProjectBusy(RuntimeError):
@@ -33,16 +39,30 @@ def _owner(path: Path) -> dict:
         return {}
 
 
-def hold_run_lock(tool: str, root: str | Path = ".") -> None:
-    """Take the project's run lock for this process (until it exits) or raise ProjectBusy naming the holder."""
-    path = (Path(root) / LOCK_PATH).resolve()
-    if path in _held:
-        return  # this process holds it already
-    if os.environ.get(OWNER_ENV) and _owner(path).get("pid") == int(os.environ[OWNER_ENV]) \
-            and os.environ[OWNER_ENV] != str(os.getpid()):
-        return  # a job of the run that holds the lock
+def _open(path: Path):
     path.parent.mkdir(exist_ok=True)
-    handle = open(path, "a+")
+    return open(path, "a+")
+
+
+def _wait_for_orphaned_jobs(jobs: Path) -> None:
+    """Block until no stage command holds ``jobs.lock`` (only jobs of a killed run can, at this point)."""
+    with _open(jobs) as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            print(f"vtgen: waiting for stage commands left running by an earlier, killed run to finish ({jobs})",
+                  file=sys.stderr, flush=True)
+            fcntl.flock(handle, fcntl.LOCK_EX)
+        fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def hold_run_lock(tool: str, root: str | Path = ".") -> None:
+    """Drive a run: take ``run.lock`` for this process (until it exits or releases it), after any jobs of a
+    killed run have finished; raise ProjectBusy naming the holder when another run is in progress."""
+    path = (Path(root) / LOCK_DIR / "run.lock").resolve()
+    if path in _held:
+        return
+    handle = _open(path)
     try:
         fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
@@ -52,6 +72,7 @@ def hold_run_lock(tool: str, root: str | Path = ".") -> None:
             f"{path}: another run of this project is in progress ({holder.get('tool', 'unknown tool')}, "
             f"pid {holder.get('pid', '?')}, since {holder.get('since', '?')}); wait for it to finish or stop it, "
             f"then run again (Snakemake and DVC share the outputs, so they never run at once)") from None
+    _wait_for_orphaned_jobs(path.with_name("jobs.lock"))
     handle.seek(0)
     handle.truncate()
     handle.write(json.dumps({"tool": tool, "pid": os.getpid(), "since": time.strftime("%Y-%m-%d %H:%M:%S")}))
@@ -60,23 +81,33 @@ def hold_run_lock(tool: str, root: str | Path = ".") -> None:
     os.environ[OWNER_ENV] = str(os.getpid())
 
 
-def release_run_lock(root: str | Path = ".") -> None:
-    """Give the lock back (a process that exits gives it back anyway)."""
-    handle = _held.pop((Path(root) / LOCK_PATH).resolve(), None)
+def _release(path: Path) -> None:
+    handle = _held.pop(path, None)
     if handle is not None:
         handle.close()
-        if os.environ.get(OWNER_ENV) == str(os.getpid()):
-            del os.environ[OWNER_ENV]
+
+
+def _started_by_the_run(run: Path) -> bool:
+    owner = os.environ.get(OWNER_ENV, "")
+    return owner.isdigit() and owner != str(os.getpid()) and _owner(run).get("pid") == int(owner)
 
 
 @contextlib.contextmanager
 def run_lock(tool: str, root: str | Path = ".") -> Iterator[None]:
-    """Hold the run lock for the ``with`` block, unless this process or the run that started it holds it."""
-    path = (Path(root) / LOCK_PATH).resolve()
-    already = path in _held
-    hold_run_lock(tool, root)
+    """Hold what a stage command needs for the ``with`` block: ``jobs.lock`` shared, and ``run.lock`` too
+    unless the Snakemake run that started this command (or this process) already drives the run."""
+    run = (Path(root) / LOCK_DIR / "run.lock").resolve()
+    jobs = run.with_name("jobs.lock")
+    drive = run not in _held and not _started_by_the_run(run)
+    if drive:
+        hold_run_lock(tool, root)
+    handle = _open(jobs)
+    fcntl.flock(handle, fcntl.LOCK_SH)
     try:
         yield
     finally:
-        if not already:
-            release_run_lock(root)
+        handle.close()
+        if drive:
+            _release(run)
+            if os.environ.get(OWNER_ENV) == str(os.getpid()):
+                del os.environ[OWNER_ENV]

@@ -10,6 +10,7 @@ from __future__ import annotations
 import ast
 import hashlib
 import subprocess
+from functools import lru_cache
 from pathlib import Path
 
 PACKAGE_ROOT = Path(__file__).resolve().parents[1]
@@ -27,6 +28,7 @@ def module_file(module: str) -> Path | None:
     return None
 
 
+@lru_cache(maxsize=None)
 def _imported_modules(path: Path, module: str) -> set[str]:
     """Every ``vtgen`` module that ``path`` imports (top level and inside functions)."""
     package = module if path.name == "__init__.py" else module.rpartition(".")[0]
@@ -44,7 +46,8 @@ def _imported_modules(path: Path, module: str) -> set[str]:
     return {m for m in found if m.startswith("vtgen") and module_file(m) is not None}
 
 
-def code_files(module: str) -> list[Path]:
+@lru_cache(maxsize=None)
+def code_files(module: str) -> tuple[Path, ...]:
     """The source files ``module`` runs: itself, the ``vtgen`` modules it imports, transitively, and the
     ``__init__.py`` of every package on the way (Python executes them on import)."""
     seen: dict[str, Path] = {}
@@ -59,7 +62,7 @@ def code_files(module: str) -> list[Path]:
         seen[name] = path
         parents = [".".join(name.split(".")[:i]) for i in range(1, len(name.split(".")))]
         todo.extend(parents + sorted(_imported_modules(path, name)))
-    return sorted(set(seen.values()))
+    return tuple(sorted(set(seen.values())))
 
 
 def code_fingerprint(module: str) -> str:
