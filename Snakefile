@@ -6,7 +6,7 @@
 import yaml
 from vtgen.io.params import validate_params
 from vtgen.pipeline import outputs, snakemake_rule, stages
-from vtgen.runlock import hold_run_lock
+from vtgen.io.runlock import hold_run_lock
 
 configfile: "params.yaml"
 

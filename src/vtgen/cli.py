@@ -6,7 +6,7 @@ params.yaml, reads only the inputs named on its command line and writes one outp
 atomically. Errors are reported in one line naming the file and the problem; set
 ``VTGEN_DEBUG=1`` for a traceback.
 
-Pipeline stages take the project's run lock (:mod:`vtgen.runlock`) and record their wall time in
+Pipeline stages take the project's run lock (:mod:`vtgen.io.runlock`) and record their wall time in
 ``timing.json`` inside their output folder, where the report finds the timings of the very
 outputs it reports.
 """
@@ -225,7 +225,7 @@ def debugging() -> bool:
 
 def run_stage(args, params) -> None:
     """Run a pipeline stage under the project's run lock and write its wall time into its output folder."""
-    from vtgen.runlock import run_lock
+    from vtgen.io.runlock import run_lock
 
     started = time.perf_counter()
     with run_lock(f"vtgen {args.stage}"):

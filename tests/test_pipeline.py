@@ -1,0 +1,90 @@
+"""The stage table: both workflows come from it, code dependencies follow imports, layers import one way."""
+
+from __future__ import annotations
+
+import copy
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+from conftest import ENV, REPO, make_project, run, tiny_params
+from vtgen import pipeline
+from vtgen.pipeline import STAGES, Stage, code_deps, dvc_yaml, snakemake_rule, stages, write_dvc_files
+
+
+def by_name(name: str) -> Stage:
+    return next(s for s in STAGES if s.name == name)
+
+
+def test_committed_dvc_files_are_what_the_stage_table_writes(default_params):
+    assert write_dvc_files(default_params, REPO, check=True) == [], "run `vtgen workflow` and commit the result"
+
+
+def test_import_layers_and_stage_independence_hold():
+    result = subprocess.run([str(Path(sys.executable).parent / "lint-imports")], cwd=REPO, capture_output=True, text=True,
+                            env=ENV)
+    assert result.returncode == 0, result.stdout[-3000:]
+    assert result.stdout.count("KEPT") == 2
+
+
+def test_code_dependencies_are_the_modules_each_stage_imports():
+    generate = code_deps(by_name("generate"))
+    assert {"src/vtgen/stages/generate.py", "src/vtgen/core/models.py", "src/vtgen/core/gan.py",
+            "src/vtgen/io/checkpoints.py", "src/vtgen/io/images.py"} <= set(generate)
+    assert "src/vtgen/stages/train.py" not in generate  # stages never import each other
+    score = code_deps(by_name("score"))
+    assert "src/vtgen/core/metrics.py" in score and "src/vtgen/core/classifier.py" not in score
+    train = code_deps(by_name("train"))
+    assert "src/vtgen/core/models.py" in train and "src/vtgen/stages/score.py" not in train
+    assert "src/vtgen/io/templates" in code_deps(by_name("report"))
+    # every listed file exists, so a tool can hash it
+    for stage in STAGES:
+        for path in code_deps(stage):
+            assert (REPO / path).exists(), (stage.name, path)
+
+
+def test_render_exists_only_for_the_synthetic_dataset(default_params):
+    generic = copy.deepcopy(default_params)
+    generic["dataset"] = {"source": "generic", "path": "my_data"}
+    assert "render" in [s.name for s in stages(default_params)]
+    assert "render" not in [s.name for s in stages(generic)]
+    written = yaml.safe_load(dvc_yaml(generic, "main"))["stages"]
+    assert "render" not in written and written["ingest"]["deps"][0] == "${dataset.path}"
+    assert "data/raw/synthetic" not in pipeline.outputs(generic)
+
+
+def test_snakemake_rule_expands_other_stages_wildcards_and_keeps_its_own(default_params):
+    params = copy.deepcopy(default_params)
+    params["translation"]["scope"] = ["all", "denim"]
+    rule = snakemake_rule(by_name("generate"), params)
+    assert rule["outputs"] == ["data/generated/{direction}"]
+    assert {"models/{direction}/all", "models/{direction}/denim"} <= set(rule["inputs"])
+    assert rule["command"](dict(direction="t2v")) == (
+        "vtgen generate --params params.yaml --direction t2v --pairs data/pairs --models models/t2v "
+        "--out data/generated/t2v")
+    assert rule["params"]["translation_scope"] == ["all", "denim"]
+    train = snakemake_rule(by_name("train"), params)
+    assert train["params"]["presets_translation_preset"] == params["presets"]["fast"]
+    assert train["threads"] == params["translation"]["threads"]
+
+
+def test_a_new_stage_in_the_table_appears_in_both_workflows_with_its_code(tmp_path):
+    project = make_project(tmp_path / "project", tiny_params())
+    table = project / "src/vtgen/pipeline.py"
+    table.write_text(table.read_text().replace(
+        "    # studies: outside the main job",
+        '    Stage("count", "vtgen.stages.pairs", "vtgen pairs --params params.yaml --tiles data/roi/tiles.parquet "\n'
+        '          "--out data/count", inputs=("data/roi",), outputs=("data/count",), params=("pairing",)),\n'
+        "    # studies: outside the main job"))
+    env = {**ENV, "PYTHONPATH": str(project / "src")}
+    subprocess.run([sys.executable, "-m", "vtgen", "workflow"], cwd=project, env=env, check=True, capture_output=True)
+    written = yaml.safe_load((project / "dvc.yaml").read_text())["stages"]["count"]
+    assert written["cmd"].endswith("--out data/count") and written["outs"] == ["data/count"]
+    assert "src/vtgen/stages/pairs.py" in written["deps"] and "src/vtgen/io/tables.py" in written["deps"]
+    dry = subprocess.run(["snakemake", "-n", "-p", "data/count"], cwd=project, env=env, capture_output=True, text=True)
+    assert dry.returncode == 0, dry.stdout[-3000:] + dry.stderr[-3000:]
+    block = re.search(r"rule count:\n(.*?)\n\n", dry.stdout, flags=re.S)
+    assert block and "src/vtgen/stages/pairs.py" in block[1] and "data/roi" in block[1]
