@@ -7,7 +7,7 @@ VENV := .venv
 STAMP := $(VENV)/.installed
 export PATH := $(CURDIR)/$(VENV)/bin:$(PATH)
 
-.PHONY: run test test-all env browser clean
+.PHONY: run test test-fast env browser clean
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
@@ -29,5 +29,11 @@ run: $(STAMP)
 test: $(STAMP) browser
 	pytest -q
 
+# the fast tier for development: everything but the end-to-end workflow runs (under a minute)
+test-fast: $(STAMP)
+	pytest -q -m "not e2e"
+
+# every generated artefact, nothing else: run outputs, checkpoints, study work, run state; reports/ keeps its README
 clean:
-	rm -rf data logs .snakemake reports/index.html reports/summary.md reports/metrics.json reports/figures
+	rm -rf data models checkpoints studies_work logs .snakemake .vtgen
+	find reports -mindepth 1 -maxdepth 1 ! -name README.md -exec rm -rf {} +
