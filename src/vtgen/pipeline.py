@@ -34,7 +34,9 @@ class Stage:
     """One pipeline stage. ``command`` is the shell command both tools run (wildcards as ``{name}``);
     ``params`` are dotted params.yaml keys (``presets.${translation.preset}`` resolves the preset);
     ``metrics`` and ``plots`` are small outputs versioned in git, not in the DVC cache; ``threads``
-    is the params key that sets the job's cores; ``reads`` are non-Python files the code reads."""
+    is the params key that sets the job's cores; ``reads`` are non-Python files the code reads.
+    Study stages keep their outputs out of the DVC cache: most projects never run them, and a
+    never-run cached output would make every plain ``dvc pull`` and ``dvc exp apply`` fail."""
 
     name: str
     module: str
@@ -230,7 +232,8 @@ def dvc_stage(stage: Stage, root: Path) -> dict:
     body["deps"] = deps
     if stage.params:
         body["params"] = list(stage.params)
-    body["outs"] = [p for path in stage.outputs for p in _dvc_path(path, own, item)]
+    outs = [p for path in stage.outputs for p in _dvc_path(path, own, item)]
+    body["outs"] = outs if stage.pipeline == "main" else [{path: {"cache": False}} for path in outs]
     if stage.metrics:
         body["metrics"] = [{path: {"cache": False}} for path in stage.metrics]
     if stage.plots:
