@@ -41,7 +41,6 @@ for _stage in stages(config, "main") + stages(config, "studies"):
 
     rule:
         name: _stage.name
-        message: _stage.doc
         input: _spec["inputs"]
         output: [directory(p) if p in _spec["directories"] else p for p in _spec["outputs"]]
         params: command=_spec["command"], **_spec["params"]
