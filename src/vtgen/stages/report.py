@@ -1,23 +1,32 @@
 """Report stage: one self-contained page that says what this run did and what it found.
 
-``run_report`` reads the outputs of every earlier stage (paths in ``RUN_LAYOUT``, relative to the
-project root) and writes ``reports/index.html`` (figures beside it in ``reports/figures/``, no
-network needed), ``reports/summary.md`` and ``reports/metrics.json`` (for ``dvc metrics``).
+``run_report`` reads only the folders named on its command line (ingest, pairs, models, generated,
+scores, classify), collects every number the page shows into one dictionary (:func:`collect`) and
+writes into ``out_dir``:
 
-The page holds: data provenance (synthetic or real, counts, quarantined inputs), the parameters
-and code version, the shape of the paper's Table I (V2T), Table II (T2V) and Table III
-(classification per iteration) with the paper's published figures beside ours and the reference
-levels, image grids per class and direction, training-loss curves and the time of every stage.
+* ``index.html`` and ``summary.md``: rendered from the Jinja2 templates ``report.html`` / ``report.md``
+  in ``vtgen/io/templates`` (HTML autoescaped), figures beside them in ``figures/``;
+* ``metrics.json``: the headline numbers only (:func:`headline_metrics`), plain numbers with sorted
+  keys, so identical inputs give a byte-identical file for ``dvc metrics diff``;
+* ``timings.json``: wall seconds of each input's job, from the ``timing.json`` each stage command
+  writes into its own output folder;
+* ``plots/training.csv``: every model's dvclive losses in long format (step, model, losses).
+
+The page holds data provenance (synthetic or real, counts, quarantined inputs), the parameters and
+code version, the shape of the paper's Table I (V2T), Table II (T2V) and Table III (classification
+per iteration) with the paper's published ranges and the reference levels, image grids per class
+and direction (the generate stage's ``preview.png``), training-loss curves and stage timings.
 """
 
 from __future__ import annotations
 
 import datetime as dt
-import html
-import json
+import errno
 import os
 import platform
 import shutil
+from dataclasses import dataclass
+from importlib import metadata
 from pathlib import Path
 
 import matplotlib
@@ -26,89 +35,189 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
-import torch  # noqa: E402
 import yaml  # noqa: E402
-from PIL import Image  # noqa: E402
 
-from vtgen.io.provenance import code_version
-from vtgen.io.images import labelled_sheet, write_png
-from vtgen.core.domain import DIRECTIONS
-from vtgen.io.tables import candidate_label
+from vtgen.core.domain import DIRECTIONS, MODALITIES  # noqa: E402
+from vtgen.io.provenance import code_version  # noqa: E402
+from vtgen.io.report_pages import PAPER, plain, read_json, render_page, table_view, write_json  # noqa: E402
+from vtgen.io.tables import QUARANTINE_COLUMNS, candidate_label, read_table  # noqa: E402
 
-RUN_LAYOUT = {
-    "ingest": Path("data/ingest"),
-    "pairs": Path("data/pairs"),
-    "models": Path("models"),
-    "generated": Path("data/generated"),
-    "scores": Path("data/scores"),
-    "classify": Path("data/classify"),
-    "benchmarks": Path("logs/benchmarks"),
-}
-MODALITIES = ("visual", "tactile")
-
-# The paper's published figures. Only the ranges below could be checked offline (the project
-# guide's summary of Lee, Bollegala & Luo, ICRA 2019); per-row values of its tables are not
-# reproduced here rather than guessed.
-PAPER = {
-    "citation": "Lee, Bollegala and Luo, \"Touching to See and Seeing to Feel\", ICRA 2019",
-    "note": "ranges as summarised in the project guide; the per-row values of the paper's tables could not be "
-            "checked offline and are not guessed",
-    "colour_ssim": {"v2t": "about 0.90", "t2v": "0.77 (cloth types) to 0.91"},
-    "accuracy": {"visual": "0.96 to 0.99", "tactile": "0.78 to 0.91"},
-}
 SETTING_ORDER = ["real", "real+generated", "low-data real", "low-data real+generated"]
+REFERENCE_LEVELS = {"real_train": "real_vs_real", "nearest_neighbour": "nearest_neighbour",
+                    "mean_image": "mean_image", "flat_mean_colour": "flat_mean_colour"}
+BY_CLASS_NEEDS = ["direction", "scope", "candidate", "class", "colour_ssim", "grey_ssim", "psnr", "ms_ssim",
+                  "set_colour_ssim", "nearest_real_colour_ssim", "images"]
+ACCURACY_NEEDS = ["modality", "setting", "seed", "epoch", "test_accuracy", "gan_test_accuracy"]
+TRAINING_COLUMNS = ["step", "model", "loss_d", "loss_g_gan", "loss_g_l1"]
+FIGURES = ("losses", "scores", "grid_v2t", "grid_t2v", "classification", "timings")
+
+
+@dataclass(frozen=True)
+class ReportInputs:
+    """The stage folders the report reads, and nothing else."""
+
+    ingest: Path
+    pairs: Path
+    models: Path
+    generated: Path
+    scores: Path
+    classify: Path
 
 
 # ---------------------------------------------------------------- reading the run
 
 
-def _read_json(path: Path) -> dict | None:
-    return json.loads(path.read_text()) if path.is_file() else None
+def model_runs(models_dir: Path) -> list[dict]:
+    """train.json of every model under ``models_dir/<direction>/<scope>/``, in direction then scope order."""
+    runs = [read_json(path) | {"folder": path.parent} for path in models_dir.glob("*/*/train.json")]
+    if not runs:
+        raise FileNotFoundError(errno.ENOENT, "no trained model (<direction>/<scope>/train.json) in", str(models_dir))
+    order = list(DIRECTIONS)
+    return sorted(runs, key=lambda r: (order.index(r["direction"]) if r["direction"] in order else 9, r["scope"]))
 
 
-def model_runs(models_root: Path) -> list[dict]:
-    """train.json of every trained model, with its dvclive loss tables (DataFrames by metric name)."""
-    runs = []
-    for train_json in sorted(models_root.glob("*/*/train.json")):
-        run = json.loads(train_json.read_text())
-        curves = {}
-        for tsv in sorted((train_json.parent / "dvclive" / "plots" / "metrics").rglob("*.tsv")):
-            name = str(tsv.relative_to(train_json.parent / "dvclive" / "plots" / "metrics").with_suffix(""))
-            curves[name] = pd.read_csv(tsv, sep="\t")
-        run["curves"] = curves
-        runs.append(run)
-    return runs
+def training_curves(runs: list[dict]) -> pd.DataFrame:
+    """Long table of every model's dvclive losses: step, model ("v2t/all"), loss_*, val_* (NaN where not logged)."""
+    tables = []
+    for run in runs:
+        metrics = run["folder"] / "dvclive" / "plots" / "metrics"
+        series = [(tsv.stem, tsv) for tsv in sorted(metrics.glob("train/loss_*.tsv"))]
+        series += [(f"val_{tsv.stem}", tsv) for tsv in sorted(metrics.glob("val/*.tsv"))]
+        merged = None
+        for column, tsv in series:
+            table = pd.read_csv(tsv, sep="\t").iloc[:, :2]
+            table.columns = ["step", column]
+            merged = table if merged is None else merged.merge(table, on="step", how="outer")
+        if merged is not None:
+            tables.append(merged.assign(model=f"{run['direction']}/{run['scope']}"))
+    long = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame(columns=TRAINING_COLUMNS)
+    extra = sorted(c for c in long.columns if c not in TRAINING_COLUMNS)
+    return long.reindex(columns=TRAINING_COLUMNS + extra).sort_values(["model", "step"], ignore_index=True)
 
 
-STAGE_ORDER = ["render", "ingest", "roi", "pairs", "train", "generate", "score", "classify", "report"]
+def classification(classify_dir: Path) -> dict:
+    """Per modality: its classify summary.json, accuracy table and the settings marked ``at_chance``."""
+    found = {}
+    for modality in MODALITIES:
+        folder = classify_dir / modality
+        summary = read_json(folder / "summary.json")
+        accuracy = read_table(folder / "accuracy.parquet", ACCURACY_NEEDS, f"the classify stage's {modality} table")
+        found[modality] = {"summary": summary, "accuracy": accuracy, "at_chance": at_chance(summary, accuracy)}
+    return found
 
 
-def stage_timings(benchmarks: Path) -> pd.DataFrame:
-    """Wall seconds and peak memory of each job from Snakemake's benchmark files (empty when absent),
-    in pipeline order."""
-    def order(tsv: Path) -> tuple[int, str]:
-        stage = tsv.stem.split("_")[0]
-        return (STAGE_ORDER.index(stage) if stage in STAGE_ORDER else len(STAGE_ORDER), tsv.stem)
+def at_chance(summary: dict, accuracy: pd.DataFrame) -> list[str]:
+    """Settings the classify stage marked as ending at chance level (summary or table); none when unmarked."""
+    flagged = {name for name, entry in (summary.get("settings") or {}).items()
+               if isinstance(entry, dict) and entry.get("at_chance") is True}
+    if "at_chance" in accuracy.columns:
+        flagged |= set(accuracy.loc[accuracy["at_chance"].fillna(False).astype(bool), "setting"])
+    return sorted(flagged, key=lambda s: (SETTING_ORDER.index(s) if s in SETTING_ORDER else 9, s))
 
+
+def stage_timings(inputs: ReportInputs, runs: list[dict]) -> pd.DataFrame:
+    """Wall seconds of the job behind each input folder (its ``timing.json``), in pipeline order; jobs
+    without one (a stage run outside the ``vtgen`` command) are left out."""
+    jobs = [("ingest", inputs.ingest), ("pairs", inputs.pairs)]
+    jobs += [(f"train_{r['direction']}_{r['scope']}", r["folder"]) for r in runs]
+    jobs += [(f"generate_{d}", inputs.generated / d) for d in DIRECTIONS] + [("score", inputs.scores)]
+    jobs += [(f"classify_{m}", inputs.classify / m) for m in MODALITIES]
     rows = []
-    for tsv in sorted(benchmarks.glob("*.tsv"), key=order):
-        table = pd.read_csv(tsv, sep="\t")
-        if table.empty:
-            continue
-        rows.append({"job": tsv.stem, "seconds": float(table["s"].iloc[-1]),
-                     "max_rss_mb": float(table["max_rss"].iloc[-1]) if "max_rss" in table else np.nan})
-    return pd.DataFrame(rows, columns=["job", "seconds", "max_rss_mb"])
+    for job, folder in jobs:
+        if (folder / "timing.json").is_file():
+            record = read_json(folder / "timing.json")
+            rows.append({"job": job, "stage": record.get("stage", job.split("_")[0]),
+                         "seconds": float(record["seconds"]), "finished": record.get("finished", "")})
+    return pd.DataFrame(rows, columns=["job", "stage", "seconds", "finished"])
+
+
+def run_facts(params: dict) -> dict:
+    """Code version, build time and machine of this report (shown on the page, never in metrics.json)."""
+    try:
+        torch_version = metadata.version("torch")
+    except metadata.PackageNotFoundError:
+        torch_version = "not installed"
+    return {"code_version": code_version(), "built": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+            "python": platform.python_version(), "torch": torch_version, "cpus": os.cpu_count(),
+            "preset": params["translation"]["preset"], "scope": list(params["translation"]["scope"])}
+
+
+def collect(params: dict, inputs: ReportInputs) -> dict:
+    """Every number and table the report shows, read from the input folders only."""
+    runs = model_runs(inputs.models)
+    synthetic = params["dataset"]["source"] == "synthetic"
+    return {
+        "title": "vtgen report" + (" (SYNTHETIC data)" if synthetic else ""), "synthetic": synthetic,
+        "dataset": {"source": params["dataset"]["source"], "path": str(params["dataset"]["path"])},
+        "ingest": read_json(inputs.ingest / "summary.json"),
+        "quarantine": read_table(inputs.ingest / "quarantine.parquet", QUARANTINE_COLUMNS,
+                                 "the ingest stage's quarantine table"),
+        "pairs": read_json(inputs.pairs / "summary.json"),
+        "run": run_facts(params), "params_yaml": yaml.safe_dump(params, sort_keys=False),
+        "models": runs, "training": training_curves(runs),
+        "score_summary": read_json(inputs.scores / "summary.json"),
+        "by_class": read_table(inputs.scores / "by_class.parquet", BY_CLASS_NEEDS, "the score stage's by_class table"),
+        "classify": classification(inputs.classify), "timings": stage_timings(inputs, runs),
+    }
+
+
+# ---------------------------------------------------------------- headline numbers (metrics.json)
+
+
+def _number(value) -> float | None:
+    """A finite value rounded to 6 decimals, or None."""
+    return None if value is None or pd.isna(value) else round(float(value), 6)
+
+
+def _compact(values: dict) -> dict:
+    return {k: v for k, v in values.items() if v is not None and v != {}}
+
+
+def ssim_headline(by_class: pd.DataFrame, direction: str) -> dict:
+    """Colour-SSIM of the pooled model (scope 'all') and the reference levels over all classes; per-class
+    models under ``scopes``; ``test_images`` counts the generated test images scored."""
+    overall = by_class[(by_class["direction"] == direction) & (by_class["class"] == "(all)")]
+    result: dict = {"scopes": {}}
+    for row in overall.itertuples(index=False):
+        if row.candidate == "generated":
+            values = _compact({"set_colour_ssim": _number(row.set_colour_ssim),
+                               "aligned_colour_ssim": _number(row.colour_ssim),
+                               "nearest_real_colour_ssim": _number(row.nearest_real_colour_ssim),
+                               "test_images": int(row.images)})
+            (result if row.scope == "all" else result["scopes"].setdefault(row.scope, {})).update(values)
+        elif row.candidate in REFERENCE_LEVELS:
+            name = REFERENCE_LEVELS[row.candidate]
+            result[name] = _number(row.set_colour_ssim)
+            result[f"{name}_aligned"] = _number(row.colour_ssim)
+    return _compact(result)
+
+
+def classify_headline(entry: dict) -> dict:
+    """Mean final-epoch test accuracy over seeds per setting, the GAN-test and the test-set size."""
+    table, summary = entry["accuracy"], entry["summary"]
+    if summary.get("status", "ok") != "ok" or table.empty:
+        return {}
+    last = table[table["epoch"] == table["epoch"].max()]
+    result = {s: _number(g["test_accuracy"].mean()) for s, g in last.groupby("setting")}
+    gan = last.loc[(last["setting"] == "real"), "gan_test_accuracy"].dropna()
+    result["gan_test"] = _number(gan.mean()) if len(gan) else None
+    result["seeds"] = int(last["seed"].nunique())
+    result["real_test_images"] = (summary.get("counts") or {}).get("real_test")
+    return _compact(result)
+
+
+def headline_metrics(data: dict) -> dict:
+    """The numbers for ``dvc metrics``: Colour-SSIM per direction, accuracy per modality and counts; no
+    timings, dates, versions or paths."""
+    metrics = {d: ssim_headline(data["by_class"], d) for d in DIRECTIONS}
+    metrics["classify"] = _compact({m: classify_headline(e) for m, e in data["classify"].items()})
+    ingest = data["ingest"]
+    metrics["counts"] = _compact({"classes": len(ingest.get("classes", [])), "images_kept": ingest.get("kept"),
+                                  "quarantined": ingest.get("quarantined"), "models": len(data["models"])})
+    return metrics
 
 
 # ---------------------------------------------------------------- tables
-
-
-def fmt(value, digits: int = 3) -> str:
-    if value is None or (isinstance(value, float) and not np.isfinite(value)):
-        return "—" if value is None or np.isnan(value) else ("inf" if value > 0 else "-inf")
-    if isinstance(value, (float, np.floating)):
-        return f"{value:.{digits}f}"
-    return str(value)
 
 
 def ssim_tables(by_class: pd.DataFrame, direction: str) -> tuple[pd.DataFrame, pd.DataFrame | None]:
@@ -116,36 +225,41 @@ def ssim_tables(by_class: pd.DataFrame, direction: str) -> tuple[pd.DataFrame, p
     when the data has ground truth, the aligned scores; one row per class plus ``(all)``."""
     rows = by_class[by_class["direction"] == direction]
     classes = sorted(c for c in rows["class"].unique() if c != "(all)") + ["(all)"]
-    generated = rows[rows["candidate"] == "generated"]
-    scopes = sorted(generated["scope"].unique())
+    scopes = sorted(rows.loc[rows["candidate"] == "generated", "scope"].unique())
 
     def column(candidate: str, metric: str, scope: str = "-") -> list:
         part = rows[(rows["candidate"] == candidate) & (rows["scope"] == scope)].set_index("class")[metric]
         return [part.get(c, np.nan) for c in classes]
 
+    def suffix(scope: str) -> str:
+        return "" if len(scopes) == 1 else f" [{scope}]"
+
     set_table = pd.DataFrame({"class": classes})
     for scope in scopes:
-        suffix = "" if len(scopes) == 1 else f" [{scope}]"
-        set_table[f"generated{suffix}"] = column("generated", "set_colour_ssim", scope)
-        set_table[f"generated, nearest real{suffix}"] = column("generated", "nearest_real_colour_ssim", scope)
+        set_table[f"generated{suffix(scope)}"] = column("generated", "set_colour_ssim", scope)
+        set_table[f"generated, nearest real{suffix(scope)}"] = column("generated", "nearest_real_colour_ssim", scope)
     set_table["real vs real"] = column("real_train", "set_colour_ssim")
     for candidate in ("nearest_neighbour", "mean_image", "flat_mean_colour"):
         set_table[candidate.replace("_", " ")] = column(candidate, "set_colour_ssim")
     set_table["paper"] = ["" for _ in classes[:-1]] + [PAPER["colour_ssim"][direction]]
-
-    if generated["colour_ssim"].notna().sum() == 0:
+    if rows.loc[rows["candidate"] == "generated", "colour_ssim"].notna().sum() == 0:
         return set_table, None
     aligned = pd.DataFrame({"class": classes})
     for scope in scopes:
-        suffix = "" if len(scopes) == 1 else f" [{scope}]"
         for metric, label in (("colour_ssim", "Colour-SSIM"), ("grey_ssim", "grey SSIM"), ("psnr", "PSNR dB"),
                               ("ms_ssim", "MS-SSIM")):
             values = column("generated", metric, scope)
             if metric != "ms_ssim" or np.isfinite(np.asarray(values, dtype=float)).any():
-                aligned[f"{label}{suffix}"] = values
+                aligned[f"{label}{suffix(scope)}"] = values
     for candidate in ("nearest_neighbour", "mean_image", "flat_mean_colour"):
         aligned[f"{candidate.replace('_', ' ')} Colour-SSIM"] = column(candidate, "colour_ssim")
     return set_table, aligned
+
+
+def _mean_std_cells(values: pd.DataFrame, column: str, epochs) -> list[str]:
+    stats = values.groupby("epoch")[column].agg(["mean", "std"])
+    return [f"{stats.loc[e, 'mean']:.3f} ± {np.nan_to_num(stats.loc[e, 'std']):.3f}" if e in stats.index else ""
+            for e in epochs]
 
 
 def accuracy_table(accuracy: pd.DataFrame, modality: str) -> pd.DataFrame:
@@ -153,59 +267,25 @@ def accuracy_table(accuracy: pd.DataFrame, modality: str) -> pd.DataFrame:
     part = accuracy[accuracy["modality"] == modality]
     table = pd.DataFrame({"epoch": sorted(part["epoch"].unique())})
     for setting in [s for s in SETTING_ORDER if s in set(part["setting"])]:
-        stats = part[part["setting"] == setting].groupby("epoch")["test_accuracy"].agg(["mean", "std"])
-        table[setting] = [f"{stats.loc[e, 'mean']:.3f} ± {np.nan_to_num(stats.loc[e, 'std']):.3f}" for e in table["epoch"]]
+        table[setting] = _mean_std_cells(part[part["setting"] == setting], "test_accuracy", table["epoch"])
     gan = part[(part["setting"] == "real") & part["gan_test_accuracy"].notna()]
     if not gan.empty:
-        stats = gan.groupby("epoch")["gan_test_accuracy"].agg(["mean", "std"])
-        table["GAN-test (real-only classifier on generated)"] = [
-            f"{stats.loc[e, 'mean']:.3f} ± {np.nan_to_num(stats.loc[e, 'std']):.3f}" for e in table["epoch"]]
+        table["GAN-test (real-only classifier on generated)"] = _mean_std_cells(gan, "gan_test_accuracy",
+                                                                                table["epoch"])
     table["paper"] = [""] * (len(table) - 1) + [PAPER["accuracy"][modality]]
     return table
 
 
-def html_table(table: pd.DataFrame, caption: str) -> str:
-    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in table.columns)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(fmt(v))}</td>" for v in row) + "</tr>"
-                   for row in table.itertuples(index=False))
-    return f"<table><caption>{html.escape(caption)}</caption><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
-
-
-def markdown_table(table: pd.DataFrame) -> str:
-    lines = ["| " + " | ".join(map(str, table.columns)) + " |", "|" + "---|" * len(table.columns)]
-    lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in table.itertuples(index=False)]
-    return "\n".join(lines)
+def models_table(runs: list[dict]) -> pd.DataFrame:
+    """One row per trained generator from its train.json."""
+    return pd.DataFrame([{
+        "model": f"{r['direction']}/{r['scope']}", "preset": r.get("preset"), "size": r["settings"]["size"],
+        "iterations": r["steps"], "wall s": r.get("wall_seconds"), "s/iteration": r.get("seconds_per_iteration"),
+        "final val L1": r.get("final_val_l1"), "device": r.get("device"), "precision": r.get("precision"),
+    } for r in runs])
 
 
 # ---------------------------------------------------------------- figures
-
-
-def image_grid(generated: pd.DataFrame, scores: pd.DataFrame | None, direction: str, per_class: int = 2) -> np.ndarray:
-    """Per class: inputs | generated | ground truth, or the nearest real test image when there is none."""
-    source, target = DIRECTIONS[direction]
-    test = generated[generated["split"] == "test"].sort_values(["class", "scope", "input_path"])
-    nearest = {}
-    if scores is not None:
-        gen_scores = scores[(scores["direction"] == direction) & (scores["candidate"] == "generated")]
-        nearest = dict(zip(gen_scores["image"], gen_scores["nearest_real_path"]))
-    has_truth = (test["ground_truth_path"].fillna("") != "").any()
-
-    def load(path: str):
-        if not path or not Path(path).is_file():
-            return None
-        with Image.open(path) as image:
-            return np.asarray(image.convert("RGB"))
-
-    rows = []
-    for name, group in test.groupby("class", sort=True):
-        group = group.head(per_class)
-        reference = [load(p) for p in (group["ground_truth_path"].fillna("") if has_truth
-                                       else [nearest.get(o, "") for o in group["output_path"]])]
-        rows.append((name, [[load(p) for p in group["input_path"]], [load(p) for p in group["output_path"]],
-                            reference]))
-    titles = [f"input ({source})", f"generated ({target})",
-              f"ground truth ({target})" if has_truth else f"nearest real test ({target})"]
-    return labelled_sheet(rows, titles, per_group=per_class)
 
 
 def _save_figure(fig, path: Path) -> None:
@@ -214,39 +294,36 @@ def _save_figure(fig, path: Path) -> None:
     plt.close(fig)
 
 
-def loss_figure(runs: list[dict], path: Path, max_models: int = 6) -> None:
-    shown = runs[:max_models]
-    fig, axes = plt.subplots(len(shown), 2, figsize=(10, 2.6 * len(shown)), squeeze=False)
-    for (ax_gan, ax_l1), run in zip(axes, shown):
-        label = f"{run['direction']}/{run['scope']}"
-        for name in ("train/loss_d", "train/loss_g_gan"):
-            if name in run["curves"]:
-                table = run["curves"][name]
-                ax_gan.plot(table["step"], table.iloc[:, 1], label=name.split("/")[1])
-        for name in ("train/loss_g_l1", "val/l1"):
-            if name in run["curves"]:
-                table = run["curves"][name]
-                ax_l1.plot(table["step"], table.iloc[:, 1], label=name.replace("/", " "),
-                           marker="o" if name.startswith("val") else None)
-        ax_gan.set_title(f"{label}: adversarial losses")
-        ax_l1.set_title(f"{label}: L1 error (train, validation)")
-        for ax in (ax_gan, ax_l1):
+def loss_figure(training: pd.DataFrame, models: list[str], path: Path, max_models: int = 6) -> None:
+    """Adversarial losses and L1 error (train, validation) per iteration, one row of panels per model
+    (the first ``max_models`` of ``models`` that logged losses)."""
+    models = [m for m in models if m in set(training["model"])][:max_models]
+    fig, axes = plt.subplots(len(models), 2, figsize=(10, 2.6 * len(models)), squeeze=False)
+    for (ax_gan, ax_l1), model in zip(axes, models):
+        curves = training[training["model"] == model]
+        for ax, names in ((ax_gan, ("loss_d", "loss_g_gan")), (ax_l1, ("loss_g_l1", "val_l1"))):
+            for name in [n for n in names if n in curves and curves[n].notna().any()]:
+                points = curves[curves[name].notna()]
+                ax.plot(points["step"], points[name], label=name, marker="o" if name.startswith("val") else None)
             ax.set_xlabel("iteration")
             ax.legend(fontsize=8)
             ax.grid(alpha=0.3)
+        ax_gan.set_title(f"{model}: adversarial losses")
+        ax_l1.set_title(f"{model}: L1 error (train, validation)")
     _save_figure(fig, path)
 
 
 def scores_figure(by_class: pd.DataFrame, path: Path) -> None:
+    """Set-to-set and aligned Colour-SSIM of every candidate over all classes, one panel per direction."""
     overall = by_class[by_class["class"] == "(all)"]
     fig, axes = plt.subplots(1, len(DIRECTIONS), figsize=(11, 3.6), squeeze=False)
     for ax, direction in zip(axes[0], DIRECTIONS):
         part = overall[overall["direction"] == direction]
-        labels = [candidate_label(c, s) for c, s in zip(part["candidate"], part["scope"])]
+        labels = [candidate_label(c, s).replace("_", " ") for c, s in zip(part["candidate"], part["scope"])]
         y = np.arange(len(part))
         ax.barh(y - 0.2, part["set_colour_ssim"], height=0.4, label="set-to-set (paper protocol)")
         ax.barh(y + 0.2, part["colour_ssim"].fillna(0), height=0.4, label="aligned (own ground truth)")
-        ax.set_yticks(y, [label.replace("_", " ") for label in labels], fontsize=8)
+        ax.set_yticks(y, labels, fontsize=8)
         ax.invert_yaxis()
         ax.set_xlim(0, 1)
         ax.set_xlabel("Colour-SSIM")
@@ -257,6 +334,7 @@ def scores_figure(by_class: pd.DataFrame, path: Path) -> None:
 
 
 def accuracy_figure(accuracy: pd.DataFrame, path: Path) -> None:
+    """Test accuracy per epoch per setting (mean, band min to max over seeds) and the GAN-test."""
     modalities = [m for m in MODALITIES if m in set(accuracy["modality"])]
     fig, axes = plt.subplots(1, max(len(modalities), 1), figsize=(11, 3.8), squeeze=False)
     for ax, modality in zip(axes[0], modalities):
@@ -278,6 +356,7 @@ def accuracy_figure(accuracy: pd.DataFrame, path: Path) -> None:
 
 
 def timing_figure(timings: pd.DataFrame, path: Path) -> None:
+    """Wall seconds per job, one bar each."""
     fig, ax = plt.subplots(figsize=(8, 0.35 * len(timings) + 1.2))
     ax.barh(timings["job"], timings["seconds"])
     ax.invert_yaxis()
@@ -286,240 +365,108 @@ def timing_figure(timings: pd.DataFrame, path: Path) -> None:
     _save_figure(fig, path)
 
 
-# ---------------------------------------------------------------- assembling the report
-
-
-STYLE = """
-body{font-family:system-ui,sans-serif;max-width:1150px;margin:2em auto;padding:0 1em;color:#222}
-table{border-collapse:collapse;margin:0.8em 0 1.6em;font-size:0.85em}
-caption{text-align:left;font-weight:600;padding:0.3em 0}
-th,td{border:1px solid #bbb;padding:0.25em 0.55em;text-align:right}
-th:first-child,td:first-child{text-align:left}
-img{max-width:100%;border:1px solid #ddd}
-.banner{background:#fff3cd;border:1px solid #e0c36a;padding:0.6em 1em;font-weight:600}
-.note{color:#555;font-size:0.9em}
-pre{background:#f5f5f5;padding:0.8em;overflow-x:auto;font-size:0.8em}
-"""
-
-
-class _Page:
-    """Collects the report once and renders it as HTML and as Markdown."""
-
-    def __init__(self) -> None:
-        self.html: list[str] = []
-        self.md: list[str] = []
-
-    def heading(self, text: str, level: int = 2) -> None:
-        self.html.append(f"<h{level}>{html.escape(text)}</h{level}>")
-        self.md.append("#" * level + " " + text + "\n")
-
-    def para(self, text: str, css: str = "") -> None:
-        klass = f' class="{css}"' if css else ""
-        self.html.append(f"<p{klass}>{html.escape(text)}</p>")
-        self.md.append(text + "\n")
-
-    def bullets(self, items: list[str]) -> None:
-        self.html.append("<ul>" + "".join(f"<li>{html.escape(i)}</li>" for i in items) + "</ul>")
-        self.md.append("\n".join(f"- {i}" for i in items) + "\n")
-
-    def table(self, table: pd.DataFrame, caption: str) -> None:
-        self.html.append(html_table(table, caption))
-        self.md.append(f"**{caption}**\n\n{markdown_table(table)}\n")
-
-    def figure(self, relative: str, alt: str) -> None:
-        self.html.append(f'<figure><img src="{html.escape(relative)}" alt="{html.escape(alt)}">'
-                         f"<figcaption class=\"note\">{html.escape(alt)}</figcaption></figure>")
-        self.md.append(f"![{alt}]({relative})\n")
-
-    def preformatted(self, text: str, summary: str) -> None:
-        self.html.append(f"<details><summary>{html.escape(summary)}</summary><pre>{html.escape(text)}</pre></details>")
-        self.md.append(f"<details><summary>{summary}</summary>\n\n```\n{text}\n```\n\n</details>\n")
-
-
-def _provenance(page: _Page, params: dict) -> dict:
-    layout = RUN_LAYOUT
-    ingest = _read_json(layout["ingest"] / "summary.json") or {}
-    pairs = _read_json(layout["pairs"] / "summary.json") or {}
-    synthetic = params["dataset"]["source"] == "synthetic"
-    page.heading("Data provenance")
-    if synthetic:
-        page.para("SYNTHETIC DATA: every number on this page comes from the embedded procedural ViTac-like dataset "
-                  "rendered by vtgen, not from real visual or GelSight images.", "banner")
-    page.bullets([
-        f"dataset: {params['dataset']['source']} at {params['dataset']['path']}",
-        f"images in: {ingest.get('entries_in', '?')}, kept: {ingest.get('kept', '?')}, "
-        f"quarantined: {ingest.get('quarantined', '?')}, converted with a note: {ingest.get('with_note', '?')}",
-        f"classes: {len(ingest.get('classes', []))} ({', '.join(ingest.get('classes', []))})",
-        "tiles per split: " + ", ".join(f"{k} {v}" for k, v in pairs.get("tiles_per_split", {}).items()),
-    ] + [f"{d.upper()} pairs: " + ", ".join(f"{s} {v['pairs']} ({v['aligned']} aligned)"
-                                             for s, v in pairs.get(d, {}).items()) for d in DIRECTIONS]
-      + [f"warning: {w}" for w in pairs.get("warnings", [])])
-    quarantine = layout["ingest"] / "quarantine.parquet"
-    if quarantine.is_file():
-        table = pd.read_parquet(quarantine)
-        if not table.empty:
-            page.table(table.head(30), f"Quarantined inputs ({len(table)}; first 30 shown)")
-    return {"synthetic": synthetic, "ingest": ingest, "pairs": pairs}
-
-
-def run_report(params: dict, out_dir: str | Path = "reports") -> dict:
-    """Build ``index.html``, ``summary.md``, ``metrics.json`` and ``figures/*.png`` in ``out_dir``
-    from the run's stage outputs (paths in ``RUN_LAYOUT``); return the metrics."""
-    layout = RUN_LAYOUT
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    build = out_dir / ".build.tmp"
-    shutil.rmtree(build, ignore_errors=True)
-    figures = build / "figures"
-    figures.mkdir(parents=True)
-    page = _Page()
-    metrics: dict = {}
-
-    provenance = _provenance(page, params)
-    metrics["synthetic"] = provenance["synthetic"]
-
-    page.heading("Run")
-    page.bullets([f"code version: {code_version()}",
-                  f"built: {dt.datetime.now(dt.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}",
-                  f"python {platform.python_version()}, torch {torch.__version__}, {os.cpu_count()} CPUs",
-                  f"translation preset: {params['translation']['preset']}, scope: "
-                  f"{', '.join(params['translation']['scope'])}"])
-    page.preformatted(yaml.safe_dump(params, sort_keys=False), "parameters (params.yaml as run)")
-    page.html.append('<p>Studies outside the main job - the paper\'s experiment rows, the speed-accuracy trade, '
-                     'capacity auto and the stability edge cases: <a href="studies/index.html">studies/index.html</a> '
-                     '(built by <code>snakemake studies</code>).</p>')
-    page.md.append("Studies outside the main job: [studies/index.html](studies/index.html) (built by `snakemake studies`).\n")
-
-    # -- translation and training curves
-    runs = model_runs(layout["models"])
-    page.heading("Translation models")
-    if runs:
-        page.table(pd.DataFrame([{
-            "model": f"{r['direction']}/{r['scope']}", "preset": r.get("preset"), "size": r["settings"]["size"],
-            "iterations": r["steps"], "wall s": r.get("wall_seconds"), "s/iteration": r.get("seconds_per_iteration"),
-            "final val L1": r.get("final_val_l1"), "device": r.get("device"), "precision": r.get("precision"),
-        } for r in runs]), "Trained generators (train.json)")
-        loss_figure(runs, figures / "losses.png")
-        page.figure("figures/losses.png", "Training losses per iteration (dvclive logs of the train stage)")
-    else:
-        page.para("No trained models found under models/.")
-
-    # -- Tables I and II
-    by_class_path = layout["scores"] / "by_class.parquet"
-    scores_path = layout["scores"] / "scores.parquet"
-    by_class = pd.read_parquet(by_class_path) if by_class_path.is_file() else None
-    scores = pd.read_parquet(scores_path) if scores_path.is_file() else None
-    score_summary = _read_json(layout["scores"] / "summary.json") or {}
-    page.heading("Generated data: Colour-SSIM with reference levels (Tables I and II)")
-    page.para("Colour-SSIM is SSIM (Wang et al. 2004) per RGB channel, averaged: Gaussian window sigma 1.5, "
-              "K1 0.01, K2 0.03, L 255. Set-to-set (the paper's protocol) scores each generated image against "
-              "every real test image of its class; nearest real keeps the best match; aligned scores each output "
-              "against its own ground truth where the data has one. Reference levels are computed the same way: "
-              "real vs real (real training against real test images), the training target of the nearest "
-              "training input, the class's mean training image and a flat image of its mean colour.")
-    page.para(f"Paper: {PAPER['citation']}: {PAPER['note']}.", "note")
-    if score_summary.get("ms_ssim", "computed") != "computed":
-        page.para(f"MS-SSIM {score_summary['ms_ssim']}.", "note")
-    metrics["ssim"] = {}
-    for number, direction in (("I", "v2t"), ("II", "t2v")):
-        if by_class is None or direction not in set(by_class["direction"]):
-            continue
-        set_table, aligned = ssim_tables(by_class, direction)
-        name = "visual to tactile (seeing to feel)" if direction == "v2t" else "tactile to visual (touching to see)"
-        page.table(set_table, f"Table {number}: {direction.upper()}, {name}: set-to-set Colour-SSIM per class")
-        if aligned is not None:
-            page.table(aligned, f"Table {number}b: {direction.upper()}: aligned scores against each output's "
-                                f"own ground truth")
-        else:
-            page.para(f"{direction.upper()}: no output has an aligned ground truth (pairs are by class only, "
-                      f"as in ViTac), so only the set-to-set protocol applies.", "note")
-        overall = by_class[(by_class["direction"] == direction) & (by_class["class"] == "(all)")]
-        level = {}
-        for row in overall.itertuples(index=False):
-            key = candidate_label(row.candidate, row.scope)
-            level[f"{key}_set"] = None if pd.isna(row.set_colour_ssim) else round(float(row.set_colour_ssim), 4)
-            if not pd.isna(row.colour_ssim):
-                level[f"{key}_aligned"] = round(float(row.colour_ssim), 4)
-        metrics["ssim"][direction] = level
-    if by_class is not None:
-        scores_figure(by_class, figures / "scores.png")
-        page.figure("figures/scores.png", "Colour-SSIM of generated images beside the reference levels, all classes")
-
-    # -- image grids
-    page.heading("Image grids")
-    for direction in DIRECTIONS:
-        table_path = layout["generated"] / direction / "generated.parquet"
-        if table_path.is_file():
-            grid = image_grid(pd.read_parquet(table_path), scores, direction)
-            write_png(figures / f"grid_{direction}.png", grid)
-            page.figure(f"figures/grid_{direction}.png",
-                        f"{direction.upper()}: test inputs, generated outputs and ground truth (or the nearest real "
-                        f"test image) per class")
-
-    # -- Table III
-    page.heading("Augmented classification (Table III)")
-    tables = []
-    metrics["classify"] = {}
-    for modality in MODALITIES:
-        summary = _read_json(layout["classify"] / modality / "summary.json")
-        if summary is None:
-            continue
-        if summary.get("status", "ok") != "ok":
-            page.para(f"{modality}: {summary['status']}", "note")
-            metrics["classify"][modality] = {"status": summary["status"]}
-            continue
-        table = pd.read_parquet(layout["classify"] / modality / "accuracy.parquet")
-        tables.append(table)
-        page.table(accuracy_table(table, modality),
-                   f"Table III ({modality}): test accuracy after each iteration, mean ± std over seeds "
-                   f"{sorted(table['seed'].unique().tolist())}")
-        last = table[table["epoch"] == table["epoch"].max()]
-        entry = {s: round(float(g["test_accuracy"].mean()), 4) for s, g in last.groupby("setting")}
-        gan = last[(last["setting"] == "real") & last["gan_test_accuracy"].notna()]
-        if not gan.empty:
-            entry["gan_test"] = round(float(gan["gan_test_accuracy"].mean()), 4)
-        metrics["classify"][modality] = entry
+def write_figures(data: dict, generated_dir: Path, figures: Path) -> dict[str, bool]:
+    """Draw (or copy) every figure the data allows into ``figures``; return which of FIGURES exist."""
+    if data["training"]["step"].notna().any():
+        loss_figure(data["training"], [f"{r['direction']}/{r['scope']}" for r in data["models"]],
+                    figures / "losses.png")
+    if not data["by_class"].empty:
+        scores_figure(data["by_class"], figures / "scores.png")
+    for direction in DIRECTIONS:  # the generate stage's sheet: inputs | generated | ground truth per class
+        if (generated_dir / direction / "preview.png").is_file():
+            shutil.copyfile(generated_dir / direction / "preview.png", figures / f"grid_{direction}.png")
+    tables = [e["accuracy"] for e in data["classify"].values() if not e["accuracy"].empty]
     if tables:
         accuracy_figure(pd.concat(tables, ignore_index=True), figures / "classification.png")
-        page.figure("figures/classification.png", "Test accuracy per iteration: real only, real + generated, "
-                                                  "low-data settings and the GAN-test")
-    else:
-        page.para("No classification results found.")
+    if not data["timings"].empty:
+        timing_figure(data["timings"], figures / "timings.png")
+    return {name: (figures / f"{name}.png").is_file() for name in FIGURES}
 
-    # -- timings
-    page.heading("Stage timings")
-    timings = stage_timings(layout["benchmarks"])
-    if timings.empty:
-        page.para("No Snakemake benchmark files under logs/benchmarks (the run was not made by Snakemake).")
-    else:
-        page.table(timings, "Wall time and peak memory of each job (Snakemake benchmark files, last run)")
-        timing_figure(timings, figures / "timings.png")
-        page.figure("figures/timings.png", "Wall seconds per job")
-        metrics["seconds"] = {row.job: round(row.seconds, 2) for row in timings.itertuples(index=False)}
 
-    title = "vtgen report" + (" (SYNTHETIC data)" if provenance["synthetic"] else "")
-    document = (f"<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\"><title>{html.escape(title)}</title>"
-                f"<style>{STYLE}</style></head><body><h1>{html.escape(title)}</h1>" + "\n".join(page.html)
-                + "</body></html>\n")
-    (build / "index.html").write_text(document)
-    (build / "summary.md").write_text(f"# {title}\n\n" + "\n".join(page.md))
-    (build / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
-    count = len(list(figures.glob("*.png")))
+# ---------------------------------------------------------------- the page
+
+
+def _classify_view(modality: str, entry: dict) -> dict:
+    summary, table = entry["summary"], entry["accuracy"]
+    status = summary.get("status", "ok")
+    view = None
+    if status == "ok" and not table.empty:
+        view = table_view(accuracy_table(table, modality),
+                          f"Table III ({modality}): test accuracy after each iteration, mean ± std over seeds "
+                          f"{sorted(plain(s) for s in table['seed'].unique())}")
+    return {"modality": modality, "status": status, "table": view, "at_chance": entry["at_chance"],
+            "classes": len(summary.get("classes", [])), "notes": summary.get("notes", [])}
+
+
+def _ssim_view(by_class: pd.DataFrame, number: str, direction: str) -> dict:
+    set_table, aligned = ssim_tables(by_class, direction)
+    name = "visual to tactile (seeing to feel)" if direction == "v2t" else "tactile to visual (touching to see)"
+    return {"direction": direction, "set": table_view(set_table, f"Table {number}: {direction.upper()}, {name}: "
+                                                                  f"set-to-set Colour-SSIM per class"),
+            "aligned": None if aligned is None else table_view(
+                aligned, f"Table {number}b: {direction.upper()}: aligned scores against each output's own ground truth")}
+
+
+def page_context(data: dict, figures: dict[str, bool]) -> dict:
+    """What the report templates render: ``data`` with its tables as template data."""
+    quarantine, timings, by_class = data["quarantine"], data["timings"], data["by_class"]
+    ms_ssim = data["score_summary"].get("ms_ssim", "computed")
+    return {
+        **{k: data[k] for k in ("title", "synthetic", "dataset", "ingest", "pairs", "run", "params_yaml")},
+        "directions": list(DIRECTIONS), "figures": figures,
+        "quarantine": table_view(quarantine.head(30), f"Quarantined inputs ({len(quarantine)}; first 30 shown)")
+        if not quarantine.empty else None,
+        "models": table_view(models_table(data["models"]), "Trained generators (train.json)"),
+        "ms_ssim_note": None if ms_ssim == "computed" else f"MS-SSIM {ms_ssim}.",
+        "ssim": [_ssim_view(by_class, n, d) for n, d in (("I", "v2t"), ("II", "t2v")) if d in set(by_class["direction"])],
+        "classify": [_classify_view(m, e) for m, e in data["classify"].items()],
+        "timings": table_view(timings[["job", "seconds", "finished"]],
+                              "Wall time of each job (timing.json in its output folder)") if not timings.empty else None,
+    }
+
+
+def timings_record(timings: pd.DataFrame) -> dict:
+    """timings.json: the jobs in pipeline order and their total wall seconds."""
+    jobs = [{k: plain(v) for k, v in row.items()} for row in timings.to_dict("records")]
+    return {"jobs": jobs, "total_seconds": round(float(timings["seconds"].sum()), 2)}
+
+
+def run_report(params: dict, ingest_dir, pairs_dir, models_dir, generated_dir, scores_dir, classify_dir,
+               out_dir: str | Path = "reports") -> dict:
+    """Build index.html, summary.md, metrics.json, timings.json, plots/training.csv and figures/ in
+    ``out_dir`` from the named stage folders only; return the headline metrics."""
+    inputs = ReportInputs(*(Path(p) for p in (ingest_dir, pairs_dir, models_dir, generated_dir, scores_dir,
+                                               classify_dir)))
+    data = collect(params, inputs)
+    out_dir = Path(out_dir)
+    build = out_dir / ".build.tmp"
+    shutil.rmtree(build, ignore_errors=True)
+    for folder in ("figures", "plots"):
+        (build / folder).mkdir(parents=True)
+    figures = write_figures(data, inputs.generated, build / "figures")
+    page, summary = render_page("report", page_context(data, figures))
+    (build / "index.html").write_text(page)
+    (build / "summary.md").write_text(summary)
+    metrics = headline_metrics(data)
+    write_json(build / "metrics.json", metrics)
+    write_json(build / "timings.json", timings_record(data["timings"]))
+    data["training"].to_csv(build / "plots" / "training.csv", index=False)
     _publish(build, out_dir)
-    print(f"report: {out_dir / 'index.html'}, {out_dir / 'summary.md'}, {out_dir / 'metrics.json'} and "
-          f"{count} figures in {out_dir / 'figures'}")
+    print(f"report: {out_dir / 'index.html'}, summary.md, metrics.json, timings.json, plots/training.csv and "
+          f"{sum(figures.values())} figures in {out_dir / 'figures'}")
     return metrics
 
 
 def _publish(build: Path, out_dir: Path) -> None:
-    """Move the finished report from ``build`` into ``out_dir``: the figures folder by one rename,
-    each file by an atomic replace (other files in ``out_dir``, such as its README, are kept)."""
-    old = out_dir / ".figures.old"
-    shutil.rmtree(old, ignore_errors=True)
-    if (out_dir / "figures").exists():
-        (out_dir / "figures").rename(old)
-    (build / "figures").rename(out_dir / "figures")
-    for name in ("metrics.json", "summary.md", "index.html"):
+    """Move the finished report from ``build`` into ``out_dir``: each folder by one rename, each file by an
+    atomic replace (other files in ``out_dir``, such as its README, are kept)."""
+    for folder in ("figures", "plots"):
+        old = out_dir / f".{folder}.old"
+        shutil.rmtree(old, ignore_errors=True)
+        if (out_dir / folder).exists():
+            (out_dir / folder).rename(old)
+        (build / folder).rename(out_dir / folder)
+        shutil.rmtree(old, ignore_errors=True)
+    for name in ("metrics.json", "timings.json", "summary.md", "index.html"):
         (build / name).replace(out_dir / name)
-    shutil.rmtree(old, ignore_errors=True)
     shutil.rmtree(build, ignore_errors=True)

@@ -1,0 +1,113 @@
+"""Rendering of the report pages: the paper's reference values, tables as template data, and one helper
+that renders a page from the Jinja2 templates in ``vtgen/io/templates`` as HTML (autoescaped) and Markdown.
+
+Both reports (the run's report and the studies report) extend ``base.html`` / ``base.md`` and share
+``style.css`` and the table and figure macros. Prose used by both formats of a page lives in a plain-text
+macro file (``report_text.txt``, ``studies_text.txt``); HTML templates pass its output through the
+``plaintext`` filter so that it is escaped.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import math
+from functools import lru_cache
+from pathlib import Path
+
+import jinja2
+import numpy as np
+
+TEMPLATES = Path(__file__).resolve().parent / "templates"
+
+# The paper's published figures. Only the ranges below could be checked offline (the project
+# guide's summary of Lee, Bollegala & Luo, ICRA 2019); per-row values of its tables are not
+# reproduced here rather than guessed.
+PAPER = {
+    "citation": "Lee, Bollegala and Luo, \"Touching to See and Seeing to Feel\", ICRA 2019",
+    "note": "ranges as summarised in the project guide; the per-row values of the paper's tables could not be "
+            "checked offline and are not guessed",
+    "colour_ssim": {"v2t": "about 0.90", "t2v": "0.77 (cloth types) to 0.91"},
+    "accuracy": {"visual": "0.96 to 0.99", "tactile": "0.78 to 0.91"},
+}
+
+
+def fmt(value, digits: int = 3) -> str:
+    """A table cell as text: floats with ``digits`` decimals, None and NaN as an em dash, infinities by name."""
+    if value is None:
+        return "—"
+    if isinstance(value, (float, np.floating)):
+        if math.isnan(value):
+            return "—"
+        if math.isinf(value):
+            return "inf" if value > 0 else "-inf"
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def md_cell(text) -> str:
+    """Text safe inside a Markdown table cell (pipes escaped, line breaks flattened)."""
+    return str(text).replace("|", "\\|").replace("\n", " ")
+
+
+def plaintext(text) -> str:
+    """``text`` as a plain string, so that the HTML page escapes it: a macro of a plain-text template
+    (``*_text.txt``) called from an HTML template comes back marked safe without having escaped anything."""
+    return str.__str__(text)
+
+
+def lines(text) -> list[str]:
+    """The non-blank lines of ``text``, stripped: a template macro's list items, one per line."""
+    return [line.strip() for line in plaintext(text).splitlines() if line.strip()]
+
+
+def plain(value):
+    """``value`` with numpy scalars turned into Python ones (for templates and JSON)."""
+    return value.item() if isinstance(value, np.generic) else value
+
+
+def table_view(table, caption: str) -> dict:
+    """A DataFrame as template data: ``{"caption", "columns", "rows"}`` with plain Python cell values."""
+    return {"caption": caption, "columns": [str(c) for c in table.columns],
+            "rows": [[plain(v) for v in row] for row in table.itertuples(index=False)]}
+
+
+@lru_cache(maxsize=1)
+def environment() -> jinja2.Environment:
+    """The Jinja2 environment of the report templates: ``*.html`` autoescaped, undefined names an error."""
+    env = jinja2.Environment(loader=jinja2.FileSystemLoader(str(TEMPLATES)),
+                             autoescape=jinja2.select_autoescape(["html"], default_for_string=False, default=False),
+                             undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True,
+                             keep_trailing_newline=True)
+    env.filters["fmt"] = fmt
+    env.filters["md_cell"] = md_cell
+    env.filters["lines"] = lines
+    env.filters["plaintext"] = plaintext
+    env.globals["paper"] = PAPER
+    return env
+
+
+def render_page(name: str, context: dict) -> tuple[str, str]:
+    """Render ``templates/<name>.html`` and ``templates/<name>.md`` with ``context``; return (html, markdown)."""
+    env = environment()
+    return env.get_template(f"{name}.html").render(context), env.get_template(f"{name}.md").render(context)
+
+
+def read_json(path: str | Path) -> dict:
+    """A JSON file written by an earlier stage; a missing or unreadable file is an error naming it."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(errno.ENOENT, "no such file (an input of this report)", str(path))
+    try:
+        return json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not a readable JSON file: {exc}") from exc
+
+
+def write_json(path: str | Path, data: dict) -> None:
+    """Write ``data`` as JSON with sorted keys (byte-identical for identical data); NaN is refused."""
+    try:
+        text = json.dumps(data, indent=2, sort_keys=True, allow_nan=False)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from exc
+    Path(path).write_text(text + "\n")
