@@ -231,7 +231,7 @@ def run_stage(args, params) -> None:
     with run_lock(f"vtgen {args.stage}"):
         args.func(args, params)
     out = Path(args.out)
-    if out.is_dir():
+    if out.is_dir() and args.stage not in ("report", "studies-report"):  # pages: reports/ holds declared files only
         record = {"stage": args.stage, "seconds": round(time.perf_counter() - started, 2),
                   "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
         (out / "timing.json").write_text(json.dumps(record) + "\n")
