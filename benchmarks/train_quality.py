@@ -1,9 +1,9 @@
 """Final aligned Colour-SSIM of fp32 against bf16 training, over seeds, on the pipeline's real pairs.
 
-For each seed and precision, ``train_translator`` (with its default speed choices) trains one
-direction on the training split of ``data/pairs`` for ``--iterations`` steps; the generator then
+For each seed and precision, ``train_translator`` (fused optimiser step, D frozen in the G step)
+trains one direction on the training split of ``data/pairs`` for ``--iterations`` steps; the generator then
 translates the aligned test pairs in eval mode (as the generate stage does) and each uint8 output
-is scored against its own ground truth with ``vtgen.metrics.colour_ssim`` (as the score stage's
+is scored against its own ground truth with ``vtgen.core.metrics.colour_ssim`` (as the score stage's
 aligned score). The table gives the per-seed scores, each precision's mean and seed spread
 (min-max and standard deviation), and whether bf16's mean lies inside fp32's seed range.
 

@@ -8,25 +8,25 @@ when the setting has ``noise``, runs the same D and G steps as vtgen and calls `
 three losses every step.
 
 **vtgen** is ``train_translator`` on the same tiles, decoded once into memory (``read_tiles``),
-with one host sync per logging window; each of its speed choices (``SpeedChoices`` and
-``translation.precision``) is timed alone and combined. Variants are interleaved within each
-repeat, so machine load hits them alike; the table gives the median seconds per iteration over
-the repeats and the median of the per-repeat speed-ups against the reference timed in the same
-repeat. Every timing skips ``--warmup`` iterations (allocation, first-call set-up).
-"combined" is ``SpeedChoices()`` (vtgen's defaults) with bf16, "combined, fp32" the same with fp32.
+with one host sync per logging window, the fused Adam / foreach RMSprop step and the discriminator
+frozen during the generator step (what :class:`vtgen.core.translator.TranslatorTraining` always
+does), timed with ``translation.precision`` fp32 ("combined, fp32") and bf16 ("combined").
+Variants are interleaved within each repeat, so machine load hits them alike; the table gives the
+median seconds per iteration over the repeats and the median of the per-repeat speed-ups against
+the reference timed in the same repeat. Every timing skips ``--warmup`` iterations (allocation,
+first-call set-up).
 
 On a machine shared with other jobs, time with ``--threads 1``: with more OpenMP threads than free
 cores every variant slows down by large, erratic factors and the ratios mean nothing.
 
     python benchmarks/train_speed.py                                  # fast, mid32, mid64, paper
     python benchmarks/train_speed.py --settings fast --iterations 24 --repeats 5
-    python benchmarks/train_speed.py --settings paper --paper-iterations 2 --repeats 2 --variants reference bf16 combined
+    python benchmarks/train_speed.py --settings paper --paper-iterations 2 --repeats 2 --variants reference combined
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import platform
 import statistics
 import tempfile
@@ -41,27 +41,12 @@ from PIL import Image
 from vtgen.io.params import load_params
 from vtgen.core.gan import adversarial_loss, make_optimizer, random_positioning
 from vtgen.core.models import build_discriminator, conditional_pair, count_parameters, UNetGenerator
-from vtgen.stages.train import PairData, prepare_batch, SpeedChoices, train_translator
+from vtgen.stages.train import PairData, prepare_batch, train_translator
 from vtgen.io.images import read_tiles
 
-NONE = SpeedChoices(fused_optimizer=False, freeze_discriminator=False, channels_last=False, prefetch=False)
-# name -> (precision, SpeedChoices); "reference" is the plain loop of this file
-VARIANTS = {
-    "in-memory tiles, no per-step sync": ("fp32", NONE),
-    "bf16": ("bf16", NONE),
-    "channels_last": ("fp32", dataclasses.replace(NONE, channels_last=True)),
-    "fused optimizer": ("fp32", dataclasses.replace(NONE, fused_optimizer=True)),
-    "frozen D in G step": ("fp32", dataclasses.replace(NONE, freeze_discriminator=True)),
-    "prefetch thread": ("fp32", dataclasses.replace(NONE, prefetch=True)),
-    "combined, fp32": ("fp32", SpeedChoices()),
-    "combined": ("bf16", SpeedChoices()),
-    "combined + channels_last": ("bf16", dataclasses.replace(SpeedChoices(), channels_last=True)),
-    "combined + prefetch": ("bf16", dataclasses.replace(SpeedChoices(), prefetch=True)),
-}
-SHORT = {"reference": "reference", "none": "in-memory tiles, no per-step sync", "bf16": "bf16",
-         "channels_last": "channels_last", "fused": "fused optimizer", "freeze": "frozen D in G step",
-         "prefetch": "prefetch thread", "combined-fp32": "combined, fp32", "combined": "combined",
-         "combined+cl": "combined + channels_last", "combined+prefetch": "combined + prefetch"}
+# name -> precision of train_translator; "reference" is the plain loop of this file
+VARIANTS = {"combined, fp32": "fp32", "combined": "bf16"}
+SHORT = {"reference": "reference", "combined-fp32": "combined, fp32", "combined": "combined"}
 
 
 def settings_for(params: dict, name: str) -> dict:
@@ -135,14 +120,13 @@ def reference_seconds(settings: dict, inputs: list[str], targets: list[str], war
     return (time.perf_counter() - started) / iterations
 
 
-def vtgen_seconds(settings: dict, data: PairData, run: dict, precision: str, speed: SpeedChoices, warmup: int,
-                  iterations: int) -> float:
+def vtgen_seconds(settings: dict, data: PairData, run: dict, precision: str, warmup: int, iterations: int) -> float:
     """Seconds per iteration of ``train_translator``, from the log rows at step ``warmup`` and at the end
     (``iterations`` is a multiple of ``warmup``, which is the logging interval)."""
     stamps = {}
     train_translator(data, dict(settings, iterations=warmup + iterations),
                      dict(run, precision=precision, log_every=warmup), "v2t", "all", progress=False,
-                     on_log=lambda row: stamps.__setitem__(row["step"], time.perf_counter()), speed=speed)
+                     on_log=lambda row: stamps.__setitem__(row["step"], time.perf_counter()))
     return (stamps[warmup + iterations] - stamps[warmup]) / iterations
 
 
@@ -172,8 +156,8 @@ def benchmark(name: str, settings: dict, run: dict, variants: list[str], warmup:
                     torch.set_num_threads(run["threads"])
                     seconds[variant].append(reference_seconds(settings, inputs, targets, warmup, iterations))
                 else:
-                    precision, speed = VARIANTS[SHORT[variant]]
-                    seconds[variant].append(vtgen_seconds(settings, data, run, precision, speed, warmup, iterations))
+                    precision = VARIANTS[SHORT[variant]]
+                    seconds[variant].append(vtgen_seconds(settings, data, run, precision, warmup, iterations))
         prep = preparation_ms(settings, data)
     g = count_parameters(UNetGenerator(settings["size"], settings["ngf"], settings["kernel"]))
     d = count_parameters(build_discriminator(settings["discriminator"], settings["size"], settings["ndf"],
@@ -191,7 +175,7 @@ def benchmark(name: str, settings: dict, run: dict, variants: list[str], warmup:
             speedup = f"{statistics.median(ratios):.2f}x ({min(ratios):.2f}-{max(ratios):.2f})"
         else:
             speedup = "-"
-        precision = "fp32" if variant == "reference" else VARIANTS[SHORT[variant]][0]
+        precision = "fp32" if variant == "reference" else VARIANTS[SHORT[variant]]
         print(f"| {SHORT[variant]} | {precision} | {statistics.median(times):.4f} | {speedup} | {iterations} | {repeats} |",
               flush=True)
     shown = "combined" if "combined" in seconds else variants[-1]

@@ -65,3 +65,24 @@ def test_optimizers_carry_the_configured_settings():
     assert isinstance(adam, torch.optim.Adam) and adam.defaults["betas"] == (0.5, 0.999) and adam.defaults["lr"] == 2e-4
     rmsprop = make_optimizer(weights, "rmsprop", 2e-4, [0.5, 0.999])
     assert isinstance(rmsprop, torch.optim.RMSprop) and rmsprop.defaults["alpha"] == 0.9
+
+
+@pytest.mark.parametrize("name", ["adam", "rmsprop"])
+def test_the_multi_tensor_step_matches_the_default_step_to_rounding(name):
+    torch.manual_seed(0)
+    start = [torch.randn(5, 3), torch.randn(7)]
+    plain_w, fast_w = ([w.clone().requires_grad_() for w in start] for _ in range(2))
+    plain = make_optimizer(plain_w, name, 1e-2, [0.5, 0.999])
+    fast = make_optimizer(fast_w, name, 1e-2, [0.5, 0.999], multi_tensor_on="cpu")
+    assert (fast.defaults["fused"] if name == "adam" else fast.defaults["foreach"]) is True
+    assert not plain.defaults.get("fused") and not plain.defaults["foreach"]
+    for step in range(3):
+        for weights, optimizer in ((plain_w, plain), (fast_w, fast)):
+            optimizer.zero_grad()
+            sum(((w - step) ** 2).sum() for w in weights).backward()
+            optimizer.step()
+    for a, b, s in zip(plain_w, fast_w, start):
+        assert not torch.equal(a, s)  # the weights moved ...
+        assert torch.allclose(a, b, rtol=1e-5, atol=1e-7)  # ... the same way
+    mps = make_optimizer([torch.zeros(1, requires_grad=True)], "adam", 1e-3, [0.5, 0.999], multi_tensor_on="mps")
+    assert not mps.defaults["fused"]  # fused Adam exists for CPU and CUDA only: the default step elsewhere

@@ -1,20 +1,30 @@
 """Train stage: one conditional GAN per direction (V2T, T2V) and scope entry.
 
-``train_translator`` is the whole training loop in one function: it draws batches from the
-pair table (aligned pairs as they are; unaligned ones get a fresh input from the same class at
-every draw, as the authors did), applies the paper's random positioning, alternates a
-discriminator and a generator step, logs losses, writes checkpoints atomically and resumes
-from them. ``run_train`` is the stage around it: it reads the pair tables, writes the final
-generator, ``train.json`` and the dvclive loss log into one output folder atomically.
+``train_translator`` is the loop around :class:`vtgen.core.translator.TranslatorTraining`: it draws
+batches from the pair table (aligned pairs as they are; unaligned ones get a fresh input from the
+same class at every draw, as the authors did), applies the paper's random positioning, runs one
+step per batch, logs window-averaged losses, stops a diverging run, writes checkpoints atomically
+and resumes from them. ``run_train`` is the stage around it: it reads the pair tables, writes the
+final generator, ``train.json`` and the dvclive loss log into one output folder atomically.
+
+A checkpoint is resumed only when its parameters, its training data and the code of this stage
+(every vtgen file it imports) all match, and only into a run that still has steps to do.
+
+Divergence that never reaches NaN is caught by generous bounds, checked at every logged window:
+the generator's weight norm may grow to ``WEIGHT_GROWTH_LIMIT`` times its value at step 0; a
+logged loss may reach ``LOSS_GROWTH_LIMIT`` times the median of the earlier windows of that loss
+(and at least ``LOSS_FLOOR``); at the end of a run of at least ``MIN_VAL_CHECK_STEPS``, the
+validation L1 may be at most the larger of ``VAL_WORSE_FACTOR`` times and ``VAL_WORSE_MARGIN``
+above the untrained generator's. Measured on the ``fast`` preset (structured pairs, 40 steps at
+lr 2e-4): weight norm 1.0x, validation L1 0.48 -> 0.35; at lr 1e3 the weight norm is 3e4x after
+two steps.
 """
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
-import queue
-import threading
+import statistics
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,26 +32,35 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
-import torch.nn.functional as F
 from tqdm import tqdm
 
-from vtgen.io.params import model_settings
-from vtgen.core.gan import adversarial_loss, make_optimizer, random_positioning, to_model_range
-from vtgen.io.images import atomic_output_dir
-from vtgen.io.tables import read_table
-from vtgen.core.models import build_discriminator, conditional_pair, count_parameters, UNetGenerator
-from vtgen.core.domain import DIRECTIONS
-from vtgen.io.tables import PAIR_COLUMNS, SPLIT_COLUMNS
-from vtgen.io.images import read_tiles
 from vtgen.core.device import resolve_device
+from vtgen.core.domain import DIRECTIONS
+from vtgen.core.gan import random_positioning, to_model_range
+from vtgen.core.models import count_parameters, UNetGenerator
+from vtgen.core.translator import LOSS_NAMES, STATE_KEYS, TranslatorTraining
 from vtgen.io.checkpoints import save_atomic, save_generator
+from vtgen.io.images import atomic_output_dir, read_tiles
+from vtgen.io.params import model_settings
+from vtgen.io.provenance import code_fingerprint
+from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
 
-LOSS_NAMES = ("loss_d", "loss_g_gan", "loss_g_l1")
 CHECKPOINT_NAME = "last.pt"
+STALE_SUFFIX = ".stale"  # an unreadable or incompatible checkpoint is renamed last.pt -> last.pt.stale
+WEIGHT_GROWTH_LIMIT = 1e3  # ‖θ_G‖₂ at most 1e3 x its step-0 value (the default preset stays within 1e2)
+LOSS_GROWTH_LIMIT = 1e3  # a loss window mean at most 1e3 x the median of the earlier windows ...
+LOSS_FLOOR = 100.0  # ... or this, whichever is larger (BCE of 100 means logits of about 100)
+VAL_WORSE_FACTOR = 1.5  # final validation L1 at most 1.5 x the untrained generator's ...
+VAL_WORSE_MARGIN = 0.25  # ... or that plus 0.25 on [-1, 1], whichever is larger; checked only after
+MIN_VAL_CHECK_STEPS = 22  # steps, when BatchNorm's running statistics (momentum 0.1) are >= 90% from training
+CHECKPOINT_FIELDS = ("fingerprint", "step", "history", "seconds", "baseline", *STATE_KEYS, "sampler_rng", "torch_rng")
+CHANGED = {"params": "the training parameters (preset, seed, precision)", "data": "the training pairs",
+           "code": "the code that defines training"}
 
 
 class TrainingDiverged(RuntimeError):
-    """A loss or weight became NaN or infinite; nothing non-finite was saved."""
+    """Training left its range (non-finite or exploding losses or weights, or a final validation L1 worse
+    than the untrained generator's); nothing diverged was saved."""
 
 
 @dataclass
@@ -109,40 +128,6 @@ def draw_batch(data: PairData, batch_size: int, generator: torch.Generator) -> t
     return inputs, data.targets[index]
 
 
-@dataclass(frozen=True)
-class SpeedChoices:
-    """How ``train_translator`` executes a step; precision (fp32 | bf16) stays in params. None of these
-    changes the batches drawn or the loss being optimised (tests/test_train.py checks each). The
-    defaults are what measured faster on the project's CPU (benchmarks/train_speed.py, 1 thread,
-    speed-up of each choice alone over the plain fp32 loop, 64 px / 128 px ngf 32):
-
-    ``fused_optimizer`` (on, 1.15-1.6x): Adam's fused step, one kernel over all parameters instead
-    of a Python loop of small ops (RMSprop: its foreach step); equal to the plain step up to rounding.
-    ``freeze_discriminator`` (on, 1.14-1.3x): the discriminator's weights need no gradient in the
-    generator step (pix2pix does the same; those gradients were discarded at the next ``zero_grad``),
-    so its weight-gradient convolutions are skipped; weights stay bitwise equal.
-    ``channels_last`` (off): NHWC memory format for networks and batches; 1.05-1.08x alone (within
-    noise) and slower than NCHW once combined with bf16 on this CPU; may pay on a GPU.
-    ``prefetch`` (off): prepare the next batch (draw, scale, random positioning) on a background
-    thread, same order and random draws as the sequential loop; preparing costs 0.1-0.3% of a step
-    (0.1 ms at 64 px, 20 ms at 256 px with positioning), so there is nothing to hide, and the
-    thread competes with torch's own threads.
-    """
-
-    fused_optimizer: bool = True
-    freeze_discriminator: bool = True
-    channels_last: bool = False
-    prefetch: bool = False
-
-
-def _multi_tensor_optimizer(optimizer: torch.optim.Optimizer, device: torch.device) -> torch.optim.Optimizer:
-    """The same optimiser and hyper-parameters, rebuilt with its multi-tensor step (fused Adam, foreach RMSprop)."""
-    option = {torch.optim.Adam: "fused", torch.optim.RMSprop: "foreach"}.get(type(optimizer))
-    if option is None or (option == "fused" and device.type not in ("cpu", "cuda")):
-        return optimizer
-    return type(optimizer)(optimizer.param_groups[0]["params"], **{**optimizer.defaults, option: True})
-
-
 def prepare_batch(data: PairData, batch_size: int, noise: bool, sampler: torch.Generator,
                   device: torch.device = torch.device("cpu")) -> tuple[torch.Tensor, torch.Tensor]:
     """One training batch in [-1, 1] on ``device``: ``draw_batch``, scaling and (with ``noise``) random
@@ -152,92 +137,6 @@ def prepare_batch(data: PairData, batch_size: int, noise: bool, sampler: torch.G
     if noise:
         x, y = random_positioning(x, y, sampler)
     return x, y
-
-
-class BatchStream:
-    """Training batches on ``device`` in the order of repeated ``prepare_batch`` calls on ``sampler``,
-    optionally prepared up to ``depth`` batches ahead on a background thread (on the CPU, then
-    copied to ``device`` by the training thread; pinned when that is a GPU).
-
-    Only the stream touches ``sampler`` once it is created, so the batches are the same with and
-    without the thread. ``sampler_state`` is the sampler's state right after the last batch handed
-    out: what a checkpoint must store for a resumed run to draw the same next batch.
-    """
-
-    def __init__(self, data: PairData, batch_size: int, noise: bool, sampler: torch.Generator,
-                 device: torch.device = torch.device("cpu"), background: bool = False, depth: int = 2) -> None:
-        self._device = device
-        self._make = lambda: prepare_batch(data, batch_size, noise, sampler, torch.device("cpu") if background else device)
-        self._sampler = sampler
-        self.sampler_state = sampler.get_state()
-        self._queue: queue.Queue | None = None
-        if background:
-            self._queue = queue.Queue(maxsize=depth)
-            self._stop = threading.Event()
-            self._thread = threading.Thread(target=self._produce, name="vtgen-batches", daemon=True)
-            self._thread.start()
-
-    def _put(self, item: tuple) -> None:
-        while not self._stop.is_set():
-            try:
-                self._queue.put(item, timeout=0.1)
-                return
-            except queue.Full:
-                continue
-
-    def _produce(self) -> None:
-        try:
-            while not self._stop.is_set():
-                x, y = self._make()
-                if self._device.type == "cuda":
-                    x, y = x.pin_memory(), y.pin_memory()
-                self._put((x, y, self._sampler.get_state()))
-        except BaseException as exc:  # handed to the training thread, raised at its next batch
-            self._put((exc,))
-
-    def next(self) -> tuple[torch.Tensor, torch.Tensor]:
-        if self._queue is None:
-            x, y = self._make()
-            self.sampler_state = self._sampler.get_state()
-            return x, y
-        item = self._queue.get()
-        if len(item) == 1:
-            raise item[0]
-        x, y, self.sampler_state = item
-        cuda = self._device.type == "cuda"
-        return x.to(self._device, non_blocking=cuda), y.to(self._device, non_blocking=cuda)
-
-    def close(self) -> None:
-        if self._queue is not None:
-            self._stop.set()
-            self._thread.join()
-
-
-def _non_finite_tensors(*modules: torch.nn.Module) -> list[str]:
-    """Names of the floating state tensors (weights, BatchNorm running statistics) holding NaN or inf."""
-    return [f"{type(m).__name__}.{name}" for m in modules for name, t in m.state_dict().items()
-            if t.is_floating_point() and not bool(torch.isfinite(t).all())]
-
-
-def _describe(bad: list[str]) -> str:
-    return ", ".join(bad[:3]) + (f" and {len(bad) - 3} more" if len(bad) > 3 else "")
-
-
-def _config_fingerprint(settings: dict, run: dict, direction: str, scope: str, data_hash: str) -> str:
-    """What a checkpoint must match to be resumed: everything except the iteration count."""
-    keyed = {"settings": {k: v for k, v in settings.items() if k != "iterations"},
-             "seed": run["seed"], "precision": run["precision"], "direction": direction, "scope": scope, "data": data_hash}
-    return hashlib.sha256(json.dumps(keyed, sort_keys=True).encode()).hexdigest()
-
-
-@dataclass
-class TrainResult:
-    generator: UNetGenerator
-    history: list[dict]
-    steps: int
-    seconds: float
-    resumed_from: int
-    device: str
 
 
 def validation_l1(generator: UNetGenerator, validation: PairData, batch_size: int = 32) -> float:
@@ -257,160 +156,352 @@ def validation_l1(generator: UNetGenerator, validation: PairData, batch_size: in
     return total / len(keep)
 
 
+@dataclass
+class TrainResult:
+    generator: UNetGenerator
+    history: list[dict]
+    steps: int
+    seconds: float
+    resumed_from: int
+    device: str
+
+
+@dataclass(frozen=True)
+class Job:
+    """What stays fixed during one ``train_translator`` call."""
+
+    label: str  # direction/scope
+    settings: dict
+    run: dict
+    device: torch.device
+    checkpoint: Path | None
+    keys: dict
+    validation: PairData | None
+
+    def remedy(self) -> str:
+        return f"lower presets.{self.run.get('preset') or '<preset>'}.lr (now {self.settings['lr']:g})"
+
+
+@dataclass
+class RunState:
+    """What a checkpoint stores besides the networks: step, logged rows, seconds trained before this call, and
+    the divergence baselines measured at step 0 (generator weight norm, validation L1 or None)."""
+
+    step: int = 0
+    history: list[dict] = field(default_factory=list)
+    seconds_before: float = 0.0
+    baseline: dict = field(default_factory=dict)
+    resumed_from: int = 0
+    saved_step: int | None = None
+
+    def last_good(self, path: Path | None) -> str:
+        if self.saved_step is None:
+            return "no checkpoint was written"
+        return f"last good checkpoint: {path} (step {self.saved_step})"
+
+
+# ---------------------------------------------------------------- resume
+
+def checkpoint_keys(settings: dict, run: dict, direction: str, scope: str, data: PairData) -> dict:
+    """The three things a checkpoint must match to be resumed, each a SHA-256: ``params`` (the preset without
+    ``iterations``, seed, precision, direction, scope), ``data`` (:meth:`PairData.fingerprint`) and ``code``
+    (every vtgen source file this stage runs)."""
+    params = {"settings": {k: v for k, v in settings.items() if k != "iterations"}, "seed": run["seed"],
+              "precision": run["precision"], "direction": direction, "scope": scope}
+    return {"params": hashlib.sha256(json.dumps(params, sort_keys=True).encode()).hexdigest(),
+            "data": data.fingerprint(), "code": code_fingerprint("vtgen.stages.train")}
+
+
+def resume_decision(saved: dict, keys: dict, iterations: int, path: Path | str) -> str | None:
+    """None when checkpoint ``saved`` (at ``path``) can be resumed for a run of ``iterations`` steps, else why not.
+
+    Resumable: all of :func:`checkpoint_keys` match and its step is below ``iterations`` (a finished run is
+    never resumed into zero steps)."""
+    stored = saved.get("fingerprint")
+    if not isinstance(stored, dict):
+        return f"{path} was written by an older vtgen (no code fingerprint)"
+    changed = [CHANGED[k] for k in CHANGED if stored.get(k) != keys[k]]
+    if changed:
+        return f"{' and '.join(changed)} changed since {path}" if len(changed) < 3 else \
+            f"{', '.join(changed[:2])} and {changed[2]} changed since {path}"
+    if saved["step"] >= iterations:
+        return f"{path} is at step {saved['step']}, the run asks for {iterations} iterations (finished)"
+    return None
+
+
+def _set_aside(path: Path, label: str, problem: str) -> None:
+    """Rename an unusable checkpoint to ``<name>.stale`` and say so in one line."""
+    stale = path.with_name(path.name + STALE_SUFFIX)
+    path.replace(stale)
+    print(f"train {label}: cannot resume from {path} ({problem}); set it aside as {stale}; training afresh")
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0] if text else ''}"
+
+
+def _read_checkpoint(path: Path, label: str) -> dict | None:
+    """The checkpoint at ``path``, or None after setting aside one that is unreadable or lacks fields."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - torch raises zip, pickle, EOF and runtime errors alike
+        _set_aside(path, label, f"unreadable, {_first_line(exc)}")
+        return None
+    missing = [k for k in CHECKPOINT_FIELDS if not isinstance(state, dict) or k not in state]
+    if missing:
+        _set_aside(path, label, f"not a checkpoint of this vtgen version, missing {', '.join(missing)}")
+        return None
+    return state
+
+
+def _restore(training: TranslatorTraining, sampler: torch.Generator, state: dict) -> None:
+    """Networks, optimisers and every random generator as they were at the checkpoint."""
+    training.load_state_dict(state)
+    sampler.set_state(state["sampler_rng"])
+    torch.set_rng_state(state["torch_rng"])
+    if training.device.type == "cuda" and state.get("cuda_rng") is not None:
+        torch.cuda.set_rng_state(state["cuda_rng"])
+
+
+def _fresh(job: Job) -> tuple[TranslatorTraining, torch.Generator]:
+    """Networks and batch sampler at step 0, both seeded with ``translation.seed``."""
+    torch.manual_seed(job.run["seed"])
+    sampler = torch.Generator().manual_seed(job.run["seed"])
+    return TranslatorTraining(job.settings, job.device, job.run["precision"]), sampler
+
+
+def _baseline(training: TranslatorTraining, validation: PairData | None) -> dict:
+    """The untrained generator's weight norm and validation L1 (None without aligned validation pairs)."""
+    val = validation_l1(training.generator, validation) if validation is not None and bool(validation.aligned.any()) \
+        else None
+    return {"weight_norm": training.generator_norm(), "val_l1": val}
+
+
+def _start(job: Job) -> tuple[TranslatorTraining, torch.Generator, RunState]:
+    """Resume from the job's checkpoint when :func:`resume_decision` allows it, else start afresh (saying why)."""
+    training, sampler = _fresh(job)
+    path = job.checkpoint
+    saved = _read_checkpoint(path, job.label) if path and job.run["resume"] and path.is_file() else None
+    reason = resume_decision(saved, job.keys, job.settings["iterations"], path) if saved is not None else None
+    if saved is not None and reason is None:
+        try:
+            _restore(training, sampler, saved)
+        except (KeyError, RuntimeError, ValueError, TypeError) as exc:
+            _set_aside(path, job.label, f"does not fit these networks, {_first_line(exc)}")
+            training, sampler = _fresh(job)
+        else:
+            print(f"train {job.label}: resuming from step {saved['step']} ({path})")
+            return training, sampler, RunState(saved["step"], saved["history"], saved["seconds"], saved["baseline"],
+                                               resumed_from=saved["step"], saved_step=saved["step"])
+    elif reason is not None:
+        print(f"train {job.label}: {reason}; training afresh")
+    return training, sampler, RunState(baseline=_baseline(training, job.validation))
+
+
+# ---------------------------------------------------------------- checkpoints
+
+def _save_checkpoint(job: Job, training: TranslatorTraining, sampler: torch.Generator, state: RunState,
+                     elapsed: float) -> None:
+    """Write the checkpoint atomically; refuse (TrainingDiverged) when a network holds NaN or inf."""
+    if job.checkpoint is None:
+        return
+    bad = _non_finite_tensors(training.generator, training.discriminator)
+    if bad:
+        raise TrainingDiverged(f"{job.label}: non-finite weights at step {state.step} ({_describe(bad)}); "
+                               f"checkpoint not written; {state.last_good(job.checkpoint)}; {job.remedy()}")
+    job.checkpoint.parent.mkdir(parents=True, exist_ok=True)
+    save_atomic({"fingerprint": job.keys, "step": state.step, "history": state.history, "seconds": elapsed,
+                 "baseline": state.baseline, **training.state_dict(), "sampler_rng": sampler.get_state(),
+                 "torch_rng": torch.get_rng_state(),
+                 "cuda_rng": torch.cuda.get_rng_state() if job.device.type == "cuda" else None}, job.checkpoint)
+    state.saved_step = state.step
+
+
+# ---------------------------------------------------------------- divergence guard
+
+def _non_finite_tensors(*modules: torch.nn.Module) -> list[str]:
+    """Names of the floating state tensors (weights, BatchNorm running statistics) holding NaN or inf."""
+    return [f"{type(m).__name__}.{name}" for m in modules for name, t in m.state_dict().items()
+            if t.is_floating_point() and not bool(torch.isfinite(t).all())]
+
+
+def _describe(bad: list[str]) -> str:
+    return ", ".join(bad[:3]) + (f" and {len(bad) - 3} more" if len(bad) > 3 else "")
+
+
+def _check_finite(losses: torch.Tensor, job: Job, state: RunState) -> None:
+    """Raise at the first step of the window (rows of ``losses``) with a NaN or infinite loss."""
+    bad = (~torch.isfinite(losses).all(dim=1)).nonzero()
+    if len(bad):
+        row = int(bad[0])
+        values = ", ".join(f"{n}={v:.4g}" for n, v in zip(LOSS_NAMES, losses[row].tolist()))
+        raise TrainingDiverged(f"{job.label}: non-finite loss at step {state.step - len(losses) + row + 1} "
+                               f"({values}); nothing after it was saved; {state.last_good(job.checkpoint)}; "
+                               f"{job.remedy()}")
+
+
+def _check_range(row: dict, training: TranslatorTraining, job: Job, state: RunState) -> None:
+    """Raise when the generator's weight norm or a logged loss leaves its range (see the module docstring)."""
+    def diverged(what: str) -> TrainingDiverged:
+        return TrainingDiverged(f"{job.label}: diverged at step {row['step']}: {what}; "
+                                f"{state.last_good(job.checkpoint)}; {job.remedy()}")
+
+    norm, start = training.generator_norm(), state.baseline["weight_norm"]
+    if not norm <= WEIGHT_GROWTH_LIMIT * start:
+        raise diverged(f"generator weight norm {norm:.3g} is outside its range (at most {WEIGHT_GROWTH_LIMIT:g} x "
+                       f"its step-0 value {start:.3g} = {WEIGHT_GROWTH_LIMIT * start:.3g})")
+    for name in LOSS_NAMES:
+        earlier = [r[name] for r in state.history]
+        if earlier:
+            limit = max(LOSS_FLOOR, LOSS_GROWTH_LIMIT * statistics.median(earlier))
+            if row[name] > limit:
+                raise diverged(f"{name} {row[name]:.3g} is outside its range (at most {limit:.3g}: "
+                               f"{LOSS_GROWTH_LIMIT:g} x the median of earlier windows, at least {LOSS_FLOOR:g})")
+
+
+def _check_validation(row: dict, job: Job, state: RunState) -> None:
+    """Raise when the final validation L1 is clearly worse than the untrained generator's (runs of at least
+    ``MIN_VAL_CHECK_STEPS``: before that, eval mode normalises with mostly initial running statistics)."""
+    start = state.baseline.get("val_l1")
+    final = row["step"] == job.settings["iterations"] and row["step"] >= MIN_VAL_CHECK_STEPS
+    if start is None or "val_l1" not in row or not final:
+        return
+    limit = max(VAL_WORSE_FACTOR * start, start + VAL_WORSE_MARGIN)
+    if not row["val_l1"] <= limit:
+        raise TrainingDiverged(f"{job.label}: diverged by step {row['step']}: validation L1 {row['val_l1']:.3g} is "
+                               f"worse than the untrained generator's {start:.3g} (limit {limit:.3g}); "
+                               f"{job.remedy()} or train longer")
+
+
+# ---------------------------------------------------------------- logging and progress
+
+def _logs_at(step: int, job: Job) -> bool:
+    run = job.run
+    return step % run["log_every"] == 0 or step % run["checkpoint_every"] == 0 or step == job.settings["iterations"]
+
+
+def _checkpoints_at(step: int, job: Job) -> bool:
+    return step % job.run["checkpoint_every"] == 0 or step == job.settings["iterations"]
+
+
+def _window_row(losses: torch.Tensor, training: TranslatorTraining, job: Job, state: RunState,
+                session_seconds: float) -> dict:
+    """The logged row of a window: mean losses, images per second in this call, ``val_l1`` at checkpoints."""
+    images = (state.step - state.resumed_from) * job.settings["batch_size"]
+    row = {"step": state.step, **dict(zip(LOSS_NAMES, losses.mean(dim=0).tolist())),
+           "images_per_s": images / max(session_seconds, 1e-9)}
+    if _checkpoints_at(state.step, job) and job.validation is not None and bool(job.validation.aligned.any()):
+        row["val_l1"] = validation_l1(training.generator, job.validation)
+    return row
+
+
+def _progress_bar(job: Job, initial: int, show: bool) -> tqdm:
+    return tqdm(total=job.settings["iterations"], initial=initial, desc=f"train {job.label}", unit="it",
+                disable=not show, mininterval=1.0, dynamic_ncols=True)
+
+
+def _show(bar: tqdm, row: dict) -> None:
+    bar.set_postfix({"D": f"{row['loss_d']:.3f}", "G": f"{row['loss_g_gan']:.3f}", "L1": f"{row['loss_g_l1']:.3f}",
+                     "img/s": f"{row['images_per_s']:.0f}"}, refresh=False)
+
+
+def _end_window(window: list[torch.Tensor], training: TranslatorTraining, sampler: torch.Generator, job: Job,
+                state: RunState, started: float) -> dict:
+    """Close a logging window (the loop's host syncs all happen here): check it, build its row, record it,
+    checkpoint if due."""
+    losses = torch.stack(window).float().cpu()
+    _check_finite(losses, job, state)
+    session = time.perf_counter() - started
+    row = _window_row(losses, training, job, state, session)
+    _check_range(row, training, job, state)
+    _check_validation(row, job, state)
+    state.history.append(row)
+    if _checkpoints_at(state.step, job):
+        _save_checkpoint(job, training, sampler, state, state.seconds_before + session)
+    return row
+
+
+# ---------------------------------------------------------------- the loop
+
 def train_translator(data: PairData, settings: dict, run: dict, direction: str, scope: str,
                      checkpoint_dir: Path | None = None, on_log=None, progress: bool = True,
-                     validation: PairData | None = None, speed: SpeedChoices | None = None) -> TrainResult:
-    """Train one conditional GAN on ``data`` for ``settings['iterations']`` steps.
+                     validation: PairData | None = None) -> TrainResult:
+    """Train one conditional GAN on ``data`` for ``settings['iterations']`` steps of :class:`TranslatorTraining`.
 
-    ``settings`` is a presets block (size, ngf, ndf, kernel, discriminator, patch_layers,
-    gan_loss, l1_weight, optimizer, lr, betas, batch_size, iterations, noise); ``run`` holds
-    device, precision, threads, checkpoint_every, resume, log_every and seed. Per step:
-    D minimises ½[L(D(x, y), real) + L(D(x, G(x)), fake)]; G minimises
-    L(D(x, G(x)), real) + l1_weight·|G(x) − y|₁ (pix2pix, Isola et al. 2017, eq. 4).
-    Losses are averaged over each ``log_every`` window and passed to ``on_log(row)``; at each
-    checkpoint the row also holds ``val_l1``, the L1 error on the aligned pairs of ``validation``.
-    A non-finite loss raises TrainingDiverged naming the step and the last good checkpoint.
-    ``speed`` picks how steps are executed (:class:`SpeedChoices`; default: the measured choices);
-    it never changes the batches drawn nor, except through floating-point rounding of a fused
-    optimiser step, the weights.
+    ``settings`` is a presets block (its keys plus batch_size, iterations, noise); ``run`` holds device,
+    precision, threads, checkpoint_every, resume, log_every and seed. Losses are averaged over each
+    ``log_every`` window and passed to ``on_log(row)``; at each checkpoint the row also holds ``val_l1``, the
+    L1 error on the aligned pairs of ``validation``. A non-finite or out-of-range loss or weight raises
+    TrainingDiverged naming the step, the quantity and the last good checkpoint.
     """
-    speed = speed or SpeedChoices()
     device = resolve_device(run["device"])
     if device.type == "cpu":
         torch.set_num_threads(run["threads"])
-    torch.manual_seed(run["seed"])
-    sampler = torch.Generator().manual_seed(run["seed"])
-    size, iterations = settings["size"], settings["iterations"]
-    generator = UNetGenerator(size, settings["ngf"], settings["kernel"]).to(device)
-    discriminator = build_discriminator(settings["discriminator"], size, settings["ndf"], settings["kernel"],
-                                        settings["patch_layers"]).to(device)
-    memory_format = torch.channels_last if speed.channels_last else torch.contiguous_format
-    generator, discriminator = generator.to(memory_format=memory_format), discriminator.to(memory_format=memory_format)
-    opt_g = make_optimizer(generator.parameters(), settings["optimizer"], settings["lr"], settings["betas"])
-    opt_d = make_optimizer(discriminator.parameters(), settings["optimizer"], settings["lr"], settings["betas"])
-    if speed.fused_optimizer:  # a resumed checkpoint's own setting wins (load_state_dict restores it)
-        opt_g, opt_d = _multi_tensor_optimizer(opt_g, device), _multi_tensor_optimizer(opt_d, device)
-    autocast = (torch.autocast(device_type=device.type, dtype=torch.bfloat16) if run["precision"] == "bf16"
-                else contextlib.nullcontext())
-
-    fingerprint = _config_fingerprint(settings, run, direction, scope, data.fingerprint())
-    checkpoint_path = checkpoint_dir / CHECKPOINT_NAME if checkpoint_dir else None
-    step, history, seconds_before, resumed_from, saved_step = 0, [], 0.0, 0, None
-    if checkpoint_path and run["resume"] and checkpoint_path.is_file():
-        state = torch.load(checkpoint_path, map_location=device, weights_only=False)
-        if state["fingerprint"] != fingerprint:
-            print(f"train {direction}/{scope}: checkpoint {checkpoint_path} is for another configuration; starting afresh")
-        elif state["step"] > iterations:
-            print(f"train {direction}/{scope}: checkpoint is at step {state['step']} > iterations {iterations}; starting afresh")
-        else:
-            generator.load_state_dict(state["generator"])
-            discriminator.load_state_dict(state["discriminator"])
-            opt_g.load_state_dict(state["opt_g"])
-            opt_d.load_state_dict(state["opt_d"])
-            sampler.set_state(state["sampler_rng"])
-            torch.set_rng_state(state["torch_rng"])
-            if device.type == "cuda" and state.get("cuda_rng") is not None:
-                torch.cuda.set_rng_state(state["cuda_rng"])
-            step, history, seconds_before = state["step"], state["history"], state["seconds"]
-            resumed_from = saved_step = step
-            print(f"train {direction}/{scope}: resuming from step {step} ({checkpoint_path})")
-    if on_log:
-        for row in history:
+    job = Job(f"{direction}/{scope}", settings, run, device,
+              Path(checkpoint_dir) / CHECKPOINT_NAME if checkpoint_dir else None,
+              checkpoint_keys(settings, run, direction, scope, data), validation)
+    training, sampler, state = _start(job)
+    for row in state.history:  # a resumed run logs the rows it inherits again, so the log is whole
+        if on_log:
             on_log(row)
-
-    def save_checkpoint(at_step: int, elapsed: float) -> None:
-        nonlocal saved_step
-        if not checkpoint_path:
-            return
-        bad = _non_finite_tensors(generator, discriminator)
-        if bad:
-            raise TrainingDiverged(f"{direction}/{scope}: non-finite weights at step {at_step} ({_describe(bad)}); "
-                                   f"checkpoint not written; {last_good()}")
-        checkpoint_dir.mkdir(parents=True, exist_ok=True)
-        save_atomic({
-            "fingerprint": fingerprint, "step": at_step, "history": history, "seconds": elapsed,
-            "generator": generator.state_dict(), "discriminator": discriminator.state_dict(),
-            "opt_g": opt_g.state_dict(), "opt_d": opt_d.state_dict(),
-            "sampler_rng": batches.sampler_state, "torch_rng": torch.get_rng_state(),
-            "cuda_rng": torch.cuda.get_rng_state() if device.type == "cuda" else None,
-        }, checkpoint_path)
-        saved_step = at_step
-
-    def last_good() -> str:
-        if saved_step is None:
-            return "no checkpoint was written"
-        return f"last good checkpoint: {checkpoint_path} (step {saved_step})"
-
-    generator.train()
-    discriminator.train()
-    window: list[torch.Tensor] = []
-    started = time.perf_counter()
-    bar = tqdm(total=iterations, initial=step, desc=f"train {direction}/{scope}", unit="it", disable=not progress,
-               mininterval=1.0, dynamic_ncols=True)
-    batches = BatchStream(data, settings["batch_size"], settings["noise"], sampler, device,
-                          background=speed.prefetch and step < iterations)
-    try:
-        while step < iterations:
-            x, y = batches.next()
-            if speed.channels_last:
-                x, y = x.contiguous(memory_format=memory_format), y.contiguous(memory_format=memory_format)
-            with autocast:
-                fake = generator(x)
-                d_real = discriminator(conditional_pair(x, y))
-                d_fake = discriminator(conditional_pair(x, fake.detach()))
-            loss_d = 0.5 * (adversarial_loss(d_real, True, settings["gan_loss"])
-                            + adversarial_loss(d_fake, False, settings["gan_loss"]))
-            opt_d.zero_grad(set_to_none=True)
-            loss_d.backward()
-            opt_d.step()
-            if speed.freeze_discriminator:  # G's step needs gradients through D, not of D's weights
-                discriminator.requires_grad_(False)
-            with autocast:
-                d_fake = discriminator(conditional_pair(x, fake))
-            loss_g_gan = adversarial_loss(d_fake, True, settings["gan_loss"])
-            loss_g_l1 = F.l1_loss(fake.float(), y)
-            loss_g = loss_g_gan + settings["l1_weight"] * loss_g_l1 if settings["l1_weight"] else loss_g_gan
-            opt_g.zero_grad(set_to_none=True)
-            loss_g.backward()
-            opt_g.step()
-            if speed.freeze_discriminator:
-                discriminator.requires_grad_(True)
-            step += 1
-            window.append(torch.stack([loss_d.detach(), loss_g_gan.detach(), loss_g_l1.detach()]))
-
-            if step % run["log_every"] == 0 or step == iterations or step % run["checkpoint_every"] == 0:
-                losses = torch.stack(window).float().cpu()  # the only host sync: once per logging window
-                bad = (~torch.isfinite(losses).all(dim=1)).nonzero()
-                if len(bad):
-                    first = step - len(window) + int(bad[0]) + 1
-                    raise TrainingDiverged(f"{direction}/{scope}: non-finite loss at step {first} "
-                                           f"({', '.join(f'{n}={v:.4g}' for n, v in zip(LOSS_NAMES, losses[int(bad[0])].tolist()))}); "
-                                           f"nothing after it was saved; {last_good()}")
-                elapsed = seconds_before + time.perf_counter() - started
-                row = {"step": step, **dict(zip(LOSS_NAMES, losses.mean(dim=0).tolist())),
-                       "images_per_s": (step - resumed_from) * settings["batch_size"] / max(elapsed - seconds_before, 1e-9)}
-                at_checkpoint = step % run["checkpoint_every"] == 0 or step == iterations
-                if at_checkpoint and validation is not None and bool(validation.aligned.any()):
-                    row["val_l1"] = validation_l1(generator, validation)
-                history.append(row)
+    window, started = [], time.perf_counter()
+    with _progress_bar(job, state.step, progress) as bar:
+        while state.step < settings["iterations"]:
+            x, y = prepare_batch(data, settings["batch_size"], settings["noise"], sampler, device)
+            window.append(torch.stack(list(training.step(x, y).values())))
+            state.step += 1
+            if _logs_at(state.step, job):
+                row = _end_window(window, training, sampler, job, state, started)
                 window = []
                 if on_log:
                     on_log(row)
-                bar.set_postfix({"D": f"{row['loss_d']:.3f}", "G": f"{row['loss_g_gan']:.3f}", "L1": f"{row['loss_g_l1']:.3f}",
-                                 "img/s": f"{row['images_per_s']:.0f}"}, refresh=False)
-                if at_checkpoint:
-                    save_checkpoint(step, elapsed)
+                _show(bar, row)
             bar.update(1)
-    finally:
-        batches.close()
-        bar.close()
-    bad = _non_finite_tensors(generator)
+    bad = _non_finite_tensors(training.generator)
     if bad:
-        raise TrainingDiverged(f"{direction}/{scope}: non-finite generator weights at step {step} ({_describe(bad)}); "
-                               f"{last_good()}")
-    seconds = seconds_before + time.perf_counter() - started
-    return TrainResult(generator.cpu().to(memory_format=torch.contiguous_format), history, step, seconds,
-                       resumed_from, str(device))
+        raise TrainingDiverged(f"{job.label}: non-finite generator weights at step {state.step} ({_describe(bad)}); "
+                               f"{state.last_good(job.checkpoint)}; {job.remedy()}")
+    seconds = state.seconds_before + time.perf_counter() - started
+    return TrainResult(training.generator.cpu(), state.history, state.step, seconds, state.resumed_from, str(device))
+
+
+def _live_logger(folder: Path):
+    """A dvclive ``Live`` writing into ``folder`` and the ``on_log`` callback feeding it (train/<loss>, val/l1)."""
+    from dvclive import Live
+    from scmrepo.exceptions import SCMError
+
+    try:
+        live = Live(dir=str(folder), save_dvc_exp=False, dvcyaml=None, report=None)
+    except SCMError as exc:  # dvclive reads the Git revision of the DVC project it runs in
+        raise RuntimeError(f"dvclive cannot log in this Git repository ({exc}); "
+                           f"make a first commit (`git commit`) and run again") from exc
+
+    def log(row: dict) -> None:
+        live.step = row["step"]
+        for name in (*LOSS_NAMES, "images_per_s"):
+            live.log_metric(f"train/{name}", row[name])
+        if "val_l1" in row:
+            live.log_metric("val/l1", row["val_l1"])
+
+    return live, log
+
+
+def _summary(result: TrainResult, data: PairData, validation: PairData | None, settings: dict, run: dict,
+             direction: str, scope: str) -> dict:
+    """What ``train.json`` records about one training run."""
+    final = result.history[-1] if result.history else {}
+    return {
+        "direction": direction, "scope": scope, "preset": run["preset"], "settings": settings,
+        "precision": run["precision"], "device": result.device, "threads": run["threads"], "seed": run["seed"],
+        "training_pairs": len(data.targets), "aligned_pairs": int(data.aligned.sum()),
+        "tile_size": int(data.targets.shape[-1]), "generator_parameters": count_parameters(result.generator),
+        "steps": result.steps, "resumed_from_step": result.resumed_from, "wall_seconds": round(result.seconds, 2),
+        "seconds_per_iteration": round(result.seconds / max(result.steps, 1), 5),
+        "final_losses": {k: final.get(k) for k in LOSS_NAMES},
+        "validation_pairs": 0 if validation is None else int(validation.aligned.sum()),
+        "final_val_l1": final.get("val_l1"),
+    }
 
 
 def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, out_dir: str | Path,
@@ -421,9 +512,6 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
     live outside it, in ``checkpoint_root/<direction>/<scope>/``, because Snakemake and DVC
     delete a stage's outputs before rerunning it and a resume must survive that.
     """
-    from dvclive import Live
-    from scmrepo.exceptions import SCMError
-
     if direction not in DIRECTIONS:
         raise ValueError(f"unknown direction '{direction}' (allowed: {', '.join(DIRECTIONS)})")
     if scope not in params["translation"]["scope"]:
@@ -435,41 +523,16 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
     data = load_pair_data(pairs, splits, direction, scope, settings["size"])
     validation = (load_pair_data(pairs, splits, direction, scope, settings["size"], split="val")
                   if not pairs_in(pairs, "val", scope).empty else None)
-    tile_side = int(data.targets.shape[-1])
     print(f"train {direction}/{scope}: {len(data.targets)} training pairs ({int(data.aligned.sum())} aligned), "
           f"preset '{run['preset']}' at {settings['size']} px, {settings['iterations']} iterations of batch "
           f"{settings['batch_size']}, {run['precision']}")
     with atomic_output_dir(out_dir) as tmp:
-        try:
-            live = Live(dir=str(tmp / "dvclive"), save_dvc_exp=False, dvcyaml=None, report=None)
-        except SCMError as exc:  # dvclive reads the Git revision of the DVC project it runs in
-            raise RuntimeError(f"dvclive cannot log in this Git repository ({exc}); "
-                               f"make a first commit (`git commit`) and run again") from exc
-
-        def log(row: dict) -> None:
-            live.step = row["step"]
-            for name in (*LOSS_NAMES, "images_per_s"):
-                live.log_metric(f"train/{name}", row[name])
-            if "val_l1" in row:
-                live.log_metric("val/l1", row["val_l1"])
-
-        result = train_translator(data, settings, run, direction, scope,
-                                  Path(checkpoint_root) / direction / scope, on_log=log, progress=progress,
-                                  validation=validation)
+        live, log = _live_logger(tmp / "dvclive")
+        result = train_translator(data, settings, run, direction, scope, Path(checkpoint_root) / direction / scope,
+                                  on_log=log, progress=progress, validation=validation)
         live.end()
         save_generator(tmp / "generator.pt", result.generator, settings, direction, scope)
-        final = result.history[-1] if result.history else {}
-        summary = {
-            "direction": direction, "scope": scope, "preset": run["preset"], "settings": settings,
-            "precision": run["precision"], "device": result.device, "threads": run["threads"], "seed": run["seed"],
-            "training_pairs": len(data.targets), "aligned_pairs": int(data.aligned.sum()), "tile_size": tile_side,
-            "generator_parameters": count_parameters(result.generator), "steps": result.steps,
-            "resumed_from_step": result.resumed_from, "wall_seconds": round(result.seconds, 2),
-            "seconds_per_iteration": round(result.seconds / max(result.steps, 1), 5),
-            "final_losses": {k: final.get(k) for k in LOSS_NAMES},
-            "validation_pairs": 0 if validation is None else int(validation.aligned.sum()),
-            "final_val_l1": final.get("val_l1"),
-        }
+        summary = _summary(result, data, validation, settings, run, direction, scope)
         (tmp / "train.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"train {direction}/{scope}: {result.steps} steps in {result.seconds:.1f} s "
           f"({summary['seconds_per_iteration']:.3f} s/it) -> {out_dir}")

@@ -35,6 +35,7 @@ import pandas as pd
 import torch
 
 from vtgen.io.params import model_settings, resolve_key, validate_params
+from vtgen.io.provenance import code_fingerprint
 from vtgen.io.images import atomic_output_dir
 from vtgen.io.tables import read_table
 from vtgen.core.domain import DIRECTIONS
@@ -209,6 +210,14 @@ def run_direction(variant: dict, direction: str, pairs_dir: Path, work: Path, la
     return quality, {**timings, "gan_test": judged["gan_test"], "judge_real_test": judged["real_test"]}
 
 
+def work_folder(kind: str, name: str, variant: dict) -> Path:
+    """``studies_work/<kind>/<name>/<key>``: the key is SHA-256 of the resolved params and of the code the study
+    runs (``code_fingerprint("vtgen.studies.study")``, which covers the stages it calls), so neither a changed
+    variant nor changed code ever reuses a model or tile trained by another."""
+    key = json.dumps({"params": variant, "code": code_fingerprint("vtgen.studies.study")}, sort_keys=True)
+    return WORK_ROOT / kind / name / hashlib.sha256(key.encode()).hexdigest()[:12]
+
+
 def run_variant(params: dict, kind: str, name: str, out_dir: str | Path, pairs_dir: str | Path = "data/pairs",
                 capacity: str | Path | None = None, progress: bool = True) -> dict:
     """Stage entry: run experiment or trade-off setting ``name`` and write ``out_dir`` atomically.
@@ -220,8 +229,7 @@ def run_variant(params: dict, kind: str, name: str, out_dir: str | Path, pairs_d
     """
     overrides = variant_overrides(params, kind, name)
     variant = apply_overrides(params, overrides)
-    # keyed by the resolved settings, so a changed variant never reuses another's models
-    work = WORK_ROOT / kind / name / hashlib.sha256(json.dumps(variant, sort_keys=True).encode()).hexdigest()[:12]
+    work = work_folder(kind, name, variant)
     pairs_dir = prepare_data(params, variant, Path(pairs_dir), work)
     if kind == "tradeoff":
         tradeoff = params["studies"]["tradeoff"]

@@ -1,0 +1,105 @@
+"""One conditional GAN under training: generator, discriminator, their optimisers and one training step.
+
+:class:`TranslatorTraining` is the pix2pix iteration (Isola et al. 2017) and nothing else: no data,
+no files, no logging. The train stage (:mod:`vtgen.stages.train`) loops around it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+
+import torch
+import torch.nn.functional as F
+
+from vtgen.core.gan import adversarial_loss, make_optimizer
+from vtgen.core.models import build_discriminator, conditional_pair, UNetGenerator
+
+LOSS_NAMES = ("loss_d", "loss_g_gan", "loss_g_l1")
+STATE_KEYS = ("generator", "discriminator", "opt_g", "opt_d")
+PRECISIONS = ("fp32", "bf16")
+
+
+class TranslatorTraining:
+    """G, D and their optimisers, built from a presets block (size, ngf, ndf, kernel, discriminator,
+    patch_layers, gan_loss, l1_weight, optimizer, lr, betas; other keys are ignored).
+
+    Weights are drawn from torch's global generator: seed it first for a reproducible start.
+    Optimisers take their multi-tensor step (fused Adam, foreach RMSprop); ``precision`` 'bf16'
+    runs the forward passes under bf16 autocast (weights, losses and optimiser state stay fp32).
+    """
+
+    def __init__(self, settings: dict, device: torch.device | str = "cpu", precision: str = "fp32") -> None:
+        if precision not in PRECISIONS:
+            raise ValueError(f"unknown precision '{precision}' (allowed: {', '.join(PRECISIONS)})")
+        self.settings, self.device, self.precision = settings, torch.device(device), precision
+        size, kernel = settings["size"], settings["kernel"]
+        self.generator = UNetGenerator(size, settings["ngf"], kernel).to(self.device).train()
+        self.discriminator = build_discriminator(settings["discriminator"], size, settings["ndf"], kernel,
+                                                 settings["patch_layers"]).to(self.device).train()
+        self.opt_g, self.opt_d = (make_optimizer(net.parameters(), settings["optimizer"], settings["lr"],
+                                                 settings["betas"], multi_tensor_on=self.device.type)
+                                  for net in (self.generator, self.discriminator))
+
+    def _autocast(self):
+        if self.precision == "bf16":
+            return torch.autocast(device_type=self.device.type, dtype=torch.bfloat16)
+        return contextlib.nullcontext()
+
+    def _loss(self, logits: torch.Tensor, real: bool) -> torch.Tensor:
+        return adversarial_loss(logits, real, self.settings["gan_loss"])
+
+    def step(self, x: torch.Tensor, y: torch.Tensor) -> dict[str, torch.Tensor]:
+        """One iteration on a batch (inputs ``x``, targets ``y``, N x 3 x S x S in [-1, 1] on the device).
+
+        D minimises ½[L(D(x, y), real) + L(D(x, G(x)), fake)]; then, with D's weights frozen,
+        G minimises L(D(x, G(x)), real) + l1_weight·|G(x) − y|₁ (pix2pix eq. 4).
+        Returns the detached 0-d losses named by :data:`LOSS_NAMES` (no host sync).
+        """
+        with self._autocast():
+            fake = self.generator(x)
+            d_real = self.discriminator(conditional_pair(x, y))
+            d_fake = self.discriminator(conditional_pair(x, fake.detach()))
+        loss_d = 0.5 * (self._loss(d_real, True) + self._loss(d_fake, False))
+        self.opt_d.zero_grad(set_to_none=True)
+        loss_d.backward()
+        self.opt_d.step()
+        loss_g_gan, loss_g_l1 = self._generator_step(x, y, fake)
+        return dict(zip(LOSS_NAMES, (loss_d.detach(), loss_g_gan.detach(), loss_g_l1.detach())))
+
+    def _generator_step(self, x: torch.Tensor, y: torch.Tensor,
+                        fake: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """G's update; D is frozen meanwhile (gradients flow through it, none are computed for its weights)."""
+        self.discriminator.requires_grad_(False)
+        try:
+            with self._autocast():
+                d_fake = self.discriminator(conditional_pair(x, fake))
+            loss_g_gan = self._loss(d_fake, True)
+            loss_g_l1 = F.l1_loss(fake.float(), y)
+            weight = self.settings["l1_weight"]
+            loss_g = loss_g_gan + weight * loss_g_l1 if weight else loss_g_gan
+            self.opt_g.zero_grad(set_to_none=True)
+            loss_g.backward()
+            self.opt_g.step()
+        finally:
+            self.discriminator.requires_grad_(True)
+        return loss_g_gan, loss_g_l1
+
+    def generator_norm(self) -> float:
+        """L2 norm of all generator parameters, ‖θ_G‖₂ = sqrt(Σ θ²) (a host sync)."""
+        return float(torch.linalg.vector_norm(torch.stack(
+            [torch.linalg.vector_norm(p.detach().float()) for p in self.generator.parameters()])))
+
+    def state_dict(self) -> dict:
+        """Both networks and both optimisers, under the keys of :data:`STATE_KEYS`."""
+        return {"generator": self.generator.state_dict(), "discriminator": self.discriminator.state_dict(),
+                "opt_g": self.opt_g.state_dict(), "opt_d": self.opt_d.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore what :meth:`state_dict` returned (copies: torch's optimiser ``load_state_dict`` would share
+        the state tensors with their source). Raises KeyError for a missing part and RuntimeError or
+        ValueError when a part does not fit these networks (other sizes or widths)."""
+        self.generator.load_state_dict(state["generator"])
+        self.discriminator.load_state_dict(state["discriminator"])
+        self.opt_g.load_state_dict(copy.deepcopy(state["opt_g"]))
+        self.opt_d.load_state_dict(copy.deepcopy(state["opt_d"]))
