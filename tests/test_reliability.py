@@ -41,7 +41,8 @@ def snapshot(folder: Path) -> dict[str, str]:
 def stable(files: dict[str, str]) -> dict[str, str]:
     """Leave out what records wall time or dates (summaries, dvclive logs) and checkpoint-format bytes."""
     return {k: v for k, v in files.items()
-            if Path(k).name not in ("summary.json", "train.json", "generator.pt") and not k.startswith("dvclive")}
+            if Path(k).name not in ("summary.json", "train.json", "generator.pt", "timing.json")
+            and not k.startswith("dvclive")}
 
 
 def same_weights(a: Path, b: Path) -> bool:
