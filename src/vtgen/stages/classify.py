@@ -204,8 +204,9 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     setting, seed and epoch; columns ACCURACY_COLUMNS, gan_test_accuracy NaN outside ``real``),
     summary.json (with ``chance`` and an ``at_chance`` flag per setting and for the GAN-test, see the
     module docstring) and curves.png; prints a warning line per flagged setting. A non-finite
-    training loss raises RuntimeError naming modality, setting, seed and epoch. With fewer than 2 classes nothing is trained: the tables are empty
-    and summary.json's ``status`` says why; otherwise ``status`` is "ok".
+    training loss raises RuntimeError naming modality, setting, seed and epoch. With fewer than 2
+    classes nothing is trained: the tables are empty and summary.json's ``status`` says why;
+    otherwise ``status`` is "ok".
     """
     cfg = params["classify"]
     torch.set_num_threads(cfg["threads"])
@@ -216,72 +217,102 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     generated = read_table(generated_file, GENERATED_COLUMNS,
                            f"the {direction} output table of the generate stage ({modality} images)")
     check_generated_splits(generated, splits, direction)
-
     real = splits[splits["modality"] == modality]
-    real_train = real[real["split"] == "train"].sort_values("path")
-    classes = sorted(real_train["class"].unique())
+    classes = sorted(real[real["split"] == "train"]["class"].unique())
     summary: dict = {"modality": modality, "direction": direction, "classes": classes, "params": dict(cfg),
                      "weights": cfg["weights"] or None, "notes": []}
     if len(classes) < 2:
-        held = f" ({classes[0]})" if classes else ""
-        status = f"not applicable: classification needs at least 2 classes, the data has {len(classes)}{held}"
-        summary.update(status=status, chance=None, counts={"real_train": len(real_train)}, settings={}, skipped={},
-                       gan_test=None)
-        with atomic_output_dir(out_dir) as tmp:
-            _write_outputs(tmp, pd.DataFrame(columns=list(ACCURACY_COLUMNS)), summary, {}, None, status)
-        print(f"classify {modality}: warning: {status}; empty tables -> {out_dir}")
-        return summary
+        return _not_applicable(summary, modality, len(real[real["split"] == "train"]), out_dir)
+    sets = _image_sets(real, generated, classes, cfg["size"], direction, summary["notes"])
+    settings, skipped = _applicable_settings(sets, modality, generated_file, summary["notes"])
+    device = resolve_device(params["translation"]["device"])
+    table = _train_settings(sets, settings, cfg, modality, len(classes), device, progress)
+    per_setting, gan_test = summarise(table, len(classes), len(sets["test"][0]), len(sets["gan"][0]))
+    summary.update(status="ok", chance=1.0 / len(classes), device=str(device), counts=sets["counts"],
+                   settings=per_setting, skipped=skipped, gan_test=gan_test,
+                   wall_seconds=round(float(table.groupby(["setting", "seed"])["seconds"].first().sum()), 2))
+    with atomic_output_dir(out_dir) as tmp:
+        _write_outputs(tmp, table, summary, per_setting, gan_test, None)
+    _print_result(summary, modality, len(cfg["seeds"]), out_dir)
+    return summary
 
+
+def _not_applicable(summary: dict, modality: str, real_train: int, out_dir: Path) -> dict:
+    """Fewer than 2 classes: empty tables and a status saying why."""
+    classes = summary["classes"]
+    held = f" ({classes[0]})" if classes else ""
+    status = f"not applicable: classification needs at least 2 classes, the data has {len(classes)}{held}"
+    summary.update(status=status, chance=None, counts={"real_train": real_train}, settings={}, skipped={},
+                   gan_test=None)
+    with atomic_output_dir(out_dir) as tmp:
+        _write_outputs(tmp, pd.DataFrame(columns=list(ACCURACY_COLUMNS)), summary, {}, None, status)
+    print(f"classify {modality}: warning: {status}; empty tables -> {out_dir}")
+    return summary
+
+
+def _image_sets(real: pd.DataFrame, generated: pd.DataFrame, classes: list[str], size: int, direction: str,
+                notes: list[str]) -> dict:
+    """The four image sets as (images, labels): ``train`` and ``test`` (real), ``generated`` (training
+    inputs translated) and ``gan`` (test inputs translated, for the GAN-test), plus ``counts``.
+    Images of classes without real training tiles are left out, with a note; a test image in a
+    training set is a split leak and an error."""
     label_of = {name: i for i, name in enumerate(classes)}
+    real_train = real[real["split"] == "train"].sort_values("path")
     real_test = real[real["split"] == "test"].sort_values("path")
     gen_train = generated[generated["split"] == "train"].sort_values(["scope", "output_path"])
     gen_test = generated[generated["split"] == "test"].sort_values(["scope", "output_path"])
     for name, frame in (("real test", real_test), ("generated training", gen_train), ("generated test", gen_test)):
         unknown = sorted(set(frame["class"]) - set(classes))
         if unknown:
-            summary["notes"].append(f"{name} images of classes without real training tiles left out: {', '.join(unknown)}")
+            notes.append(f"{name} images of classes without real training tiles left out: {', '.join(unknown)}")
     real_test, gen_train, gen_test = (f[f["class"].isin(classes)] for f in (real_test, gen_train, gen_test))
-    test_paths = set(real[real["split"] == "test"]["path"])
-    leaked = test_paths & (set(real_train["path"]) | set(gen_train["output_path"]))
+    leaked = set(real[real["split"] == "test"]["path"]) & (set(real_train["path"]) | set(gen_train["output_path"]))
     if leaked:  # check_generated_splits has vetted the inputs; this guards the assembled sets themselves
         raise ValueError(f"split leak: {len(leaked)} test image(s) in the training set, e.g. {sorted(leaked)[0]}")
-
-    size = cfg["size"]
 
     def load(frame: pd.DataFrame, column: str) -> tuple[torch.Tensor, torch.Tensor]:
         remedy = "rerun the roi stage" if column == "path" else f"rerun the generate stage ({direction})"
         return (read_tiles(list(frame[column]), size, remedy=remedy),
                 torch.tensor([label_of[c] for c in frame["class"]], dtype=torch.long))
 
-    train_x, train_y = load(real_train, "path")
-    test_x, test_y = load(real_test, "path")
-    gen_x, gen_y = load(gen_train, "output_path")
-    gan_x, gan_y = load(gen_test, "output_path")
-    counts = {"real_train": len(train_x), "real_test": len(test_x), "generated_train": len(gen_x),
-              "generated_test": len(gan_x), "per_class_real_train": real_train["class"].value_counts().sort_index().to_dict(),
-              "low_data_real_train": {}}
-    skipped = {}
-    settings = list(SETTINGS)
-    if len(gen_x) == 0:
+    sets = {"train": load(real_train, "path"), "test": load(real_test, "path"),
+            "generated": load(gen_train, "output_path"), "gan": load(gen_test, "output_path")}
+    sets["counts"] = {"real_train": len(real_train), "real_test": len(real_test), "generated_train": len(gen_train),
+                      "generated_test": len(gen_test),
+                      "per_class_real_train": real_train["class"].value_counts().sort_index().to_dict(),
+                      "low_data_real_train": {}}
+    return sets
+
+
+def _applicable_settings(sets: dict, modality: str, generated_file: Path, notes: list[str]) -> tuple[list[str], dict]:
+    """The settings that can run (``+generated`` ones need generated training images) and why others cannot."""
+    skipped, settings = {}, list(SETTINGS)
+    if len(sets["generated"][0]) == 0:
         reason = f"no generated training images of {modality} in {generated_file} (generate.train_share is 0?)"
         skipped = {s: reason for s in SETTINGS if s.endswith("+generated")}
         settings = [s for s in SETTINGS if s not in skipped]
-    if len(gan_x) == 0:
-        summary["notes"].append(f"no generated test images of {modality}: no GAN-test")
-    if len(test_x) == 0:
-        summary["notes"].append(f"no real test tiles of {modality}: test accuracy is NaN")
+    if len(sets["gan"][0]) == 0:
+        notes.append(f"no generated test images of {modality}: no GAN-test")
+    if len(sets["test"][0]) == 0:
+        notes.append(f"no real test tiles of {modality}: test accuracy is NaN")
+    return settings, skipped
 
-    device = resolve_device(params["translation"]["device"])
+
+def _train_settings(sets: dict, settings: list[str], cfg: dict, modality: str, num_classes: int, device,
+                    progress: bool) -> pd.DataFrame:
+    """Train one classifier per seed and setting; one accuracy row per epoch."""
     weights_file = cfg["weights"] or None
     if weights_file and not Path(weights_file).is_file():
         raise ValueError(f"{weights_file}: weights file not found (classify.weights; \"\" trains from scratch)")
     weights = read_state_dict(weights_file) if weights_file else None
+    (train_x, train_y), (test_x, test_y), (gen_x, gen_y), (gan_x, gan_y) = (
+        sets[k] for k in ("train", "test", "generated", "gan"))
     rows = []
     bar = tqdm(total=len(settings) * len(cfg["seeds"]), desc=f"classify {modality}", unit="run", disable=not progress,
                dynamic_ncols=True)
     for seed in cfg["seeds"]:
         subset = torch.from_numpy(low_data_subset(train_y.numpy(), cfg["low_data_fraction"], seed))
-        counts["low_data_real_train"][str(seed)] = len(subset)
+        sets["counts"]["low_data_real_train"][str(seed)] = len(subset)
         for setting in settings:
             real_x, real_y = (train_x[subset], train_y[subset]) if setting.startswith("low-data") else (train_x, train_y)
             use_generated = setting.endswith("+generated")
@@ -295,7 +326,7 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
                                 refresh=True)
 
             try:
-                run = train_classifier(x, y, test_x, test_y, len(classes), cfg, seed, device, extra_eval=extra,
+                run = train_classifier(x, y, test_x, test_y, num_classes, cfg, seed, device, extra_eval=extra,
                                        weights=weights, weights_source=str(weights_file),
                                        retrain_layers=cfg["retrain_layers"], progress=show)
             except TrainingDiverged as exc:
@@ -306,24 +337,21 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
             gan = run.extra_accuracy.get("gan_test", [math.nan] * len(run.test_accuracy))
             for epoch, (acc, gan_acc) in enumerate(zip(run.test_accuracy, gan), start=1):
                 rows.append({"modality": modality, "setting": setting, "seed": seed, "epoch": epoch,
-                             "test_accuracy": acc, "at_chance": at_chance(acc, len(test_x), len(classes)),
+                             "test_accuracy": acc, "at_chance": at_chance(acc, len(test_x), num_classes),
                              "gan_test_accuracy": gan_acc, "train_images": len(x),
                              "real_images": len(real_x), "generated_images": len(x) - len(real_x),
                              "seconds": run.seconds})
             bar.update(1)
     bar.close()
+    return pd.DataFrame(rows, columns=list(ACCURACY_COLUMNS))
 
-    table = pd.DataFrame(rows, columns=list(ACCURACY_COLUMNS))
-    per_setting, gan_test = summarise(table, len(classes), len(test_x), len(gan_x))
-    summary.update(status="ok", chance=1.0 / len(classes), device=str(device), counts=counts, settings=per_setting, skipped=skipped,
-                   gan_test=gan_test, wall_seconds=round(float(table.groupby(["setting", "seed"])["seconds"].first().sum()), 2))
-    with atomic_output_dir(out_dir) as tmp:
-        _write_outputs(tmp, table, summary, per_setting, gan_test, None)
+
+def _print_result(summary: dict, modality: str, seeds: int, out_dir: Path) -> None:
+    per_setting, gan_test = summary["settings"], summary["gan_test"]
     finals = ", ".join(f"{name} {s['final_mean']:.3f}±{s['final_std']:.3f}" for name, s in per_setting.items()
                        if s["final_mean"] is not None)
     gan_text = f", GAN-test {gan_test['final_mean']:.3f}" if gan_test and gan_test["final_mean"] is not None else ""
     for line in chance_warnings(modality, summary):
         print(line)
-    print(f"classify {modality}: final test accuracy over {len(cfg['seeds'])} seed(s): {finals}{gan_text} "
-          f"({len(classes)} classes, {summary['wall_seconds']:.0f} s training) -> {out_dir}")
-    return summary
+    print(f"classify {modality}: final test accuracy over {seeds} seed(s): {finals}{gan_text} "
+          f"({len(summary['classes'])} classes, {summary['wall_seconds']:.0f} s training) -> {out_dir}")
