@@ -29,9 +29,9 @@ run: $(STAMP)
 test: $(STAMP) browser
 	pytest -q
 
-# the fast tier for development: everything but the end-to-end workflow runs (under a minute)
+# the fast tier for development: neither the end-to-end workflow runs nor the slow unit tests
 test-fast: $(STAMP)
-	pytest -q -m "not e2e"
+	pytest -q -m "not e2e and not slow"
 
 # every generated artefact, nothing else: run outputs, checkpoints, study work, run state; reports/ keeps its README
 clean:

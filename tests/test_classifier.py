@@ -60,6 +60,7 @@ def test_alexnet_refuses_bad_arguments_and_float_images():
         AlexNet(3, 32, 0.125)(torch.zeros(1, 3, 32, 32))
 
 
+@pytest.mark.slow
 def test_classifier_learns_stripe_orientation():
     train_x, train_y = stripes(40, seed=0)
     test_x, test_y = stripes(15, seed=1)
@@ -186,6 +187,7 @@ def classify_params(**overrides):
                                           low_data_fraction=0.34), **overrides))
 
 
+@pytest.mark.slow
 def test_stage_writes_tables_summary_and_plot(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     fake_layout(tmp_path)
@@ -277,6 +279,7 @@ def run_stage_cli(tmp_path, params, capsys, modality="visual"):
     return code, capsys.readouterr()
 
 
+@pytest.mark.slow
 def test_stage_on_separable_data_is_not_flagged(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     fake_layout(tmp_path, test=6)  # 18 test images of three colour-coded classes
@@ -293,6 +296,7 @@ def test_stage_on_separable_data_is_not_flagged(tmp_path, monkeypatch, capsys):
     assert "chance level" not in printed.out + printed.err
 
 
+@pytest.mark.slow
 def test_stage_at_an_absurd_learning_rate_is_flagged_or_stopped(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     fake_layout(tmp_path, test=6)

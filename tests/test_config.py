@@ -57,6 +57,7 @@ def test_load_params_reports_missing_file_and_bad_yaml(tmp_path):
         load_params(bad)
 
 
+@pytest.mark.slow
 def test_cli_stops_at_start_naming_the_key(tmp_path, default_params):
     params = copy.deepcopy(default_params)
     params["roi"]["size"] = "big"

@@ -481,6 +481,7 @@ def write_params(folder: Path, params) -> Path:
 
 @fuzz(150)
 @given(key=st.sampled_from(LEAVES), pick=st.integers(0, 4))
+@pytest.mark.slow
 def test_params_with_a_wrong_type_stop_every_stage_naming_the_key(scratch, key, pick):
     original = BASE
     for part in key:
@@ -498,6 +499,7 @@ def test_params_with_a_wrong_type_stop_every_stage_naming_the_key(scratch, key, 
 @fuzz(60)
 @given(section=st.sampled_from([(), *[(s,) for s in sorted(BASE) if s != "presets"], ("presets", "fast")]),
        key=st.text(st.characters(codec="utf-8", exclude_categories=["Cs", "Cc"]), min_size=1, max_size=12))
+@pytest.mark.slow
 def test_params_with_an_unknown_key_are_refused_naming_it(scratch, section, key):
     # `presets` itself is open (any name is a preset block), so its blocks are tried instead
     tree = copy.deepcopy(BASE)
@@ -530,6 +532,7 @@ def test_params_missing_a_key_are_refused_naming_it(tmp_path, key):
     st.text(max_size=200).map(str.encode),
     st.sampled_from([b"", b"\xff\xfe\x00garbage", b"- a\n- list\n", b"just a string", b"42", b"roi: [unclosed",
                      b"dataset: !!python/object:os.system {}", b"\t- tab", b"null", b"{}"])))
+@pytest.mark.slow
 def test_params_files_that_are_not_a_params_mapping_are_refused(scratch, content):
     path = scratch / "garbage.yaml"
     path.write_bytes(content)
@@ -551,6 +554,7 @@ def table_inputs(folder: Path) -> dict[str, Path]:
 
 
 @pytest.mark.parametrize("stage, flag", [("roi", "--manifest"), ("pairs", "--tiles")])
+@pytest.mark.slow
 def test_stage_inputs_that_are_not_the_expected_table_give_one_line_naming_the_file(tmp_path, stage, flag):
     path = write_params(tmp_path, BASE)
     for name, table in table_inputs(tmp_path / "inputs").items():

@@ -173,6 +173,7 @@ def traced_peak(func) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.slow
 def test_ingest_memory_grows_with_metadata_not_with_pixels(tmp_path):
     side, n = 96, 60
     small = write_jpegs(tmp_path / "small", n, side)

@@ -26,6 +26,7 @@ def make_tiles(spec, aligned=True, tiles_per_image=2, fixed=None):
 @settings(max_examples=40, deadline=None)
 @given(spec=st.dictionaries(st.sampled_from(list("abcdef")), st.integers(1, 12), min_size=1, max_size=4),
        aligned=st.booleans(), val=st.floats(0, 0.5), test=st.floats(0, 0.5), seed=st.integers(0, 2**16))
+@pytest.mark.slow
 def test_no_source_is_in_two_splits(spec, aligned, val, test, seed):
     tiles = make_tiles(spec, aligned)
     tiles["split"], _ = assign_splits(tiles, val, test, seed)

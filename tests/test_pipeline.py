@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import copy
 import re
 import subprocess
@@ -10,7 +11,7 @@ from pathlib import Path
 
 import yaml
 
-from conftest import ENV, REPO, make_project, run, tiny_params
+from conftest import ENV, REPO, make_project, tiny_params
 from vtgen import pipeline
 from vtgen.pipeline import STAGES, Stage, code_deps, dvc_yaml, snakemake_rule, stages, write_dvc_files
 
@@ -71,6 +72,7 @@ def test_snakemake_rule_expands_other_stages_wildcards_and_keeps_its_own(default
     assert train["threads"] == params["translation"]["threads"]
 
 
+@pytest.mark.slow
 def test_a_new_stage_in_the_table_appears_in_both_workflows_with_its_code(tmp_path):
     project = make_project(tmp_path / "project", tiny_params())
     table = project / "src/vtgen/pipeline.py"

@@ -155,6 +155,7 @@ def _minimal_context(table: dict) -> dict:
 # ---------------------------------------------------------------- the stage on fake inputs
 
 
+@pytest.mark.slow
 def test_metrics_json_holds_headline_numbers_and_is_byte_identical_across_runs(tmp_path):
     folders = fake_run(tmp_path / "in")
     first = report(folders, tmp_path / "one")
@@ -176,6 +177,7 @@ def test_metrics_json_holds_headline_numbers_and_is_byte_identical_across_runs(t
     assert metrics["counts"] == {"classes": 2, "images_kept": 12, "quarantined": 1, "models": 2}
 
 
+@pytest.mark.slow
 def test_report_reads_only_its_arguments(tmp_path, monkeypatch):
     """Inputs under unusual names, run from an empty folder: every file opened under tmp_path is an input or output."""
     folders = fake_run(tmp_path / "elsewhere")
@@ -217,6 +219,7 @@ def _stop_recording() -> None:
     _OPENED = None
 
 
+@pytest.mark.slow
 def test_html_escapes_a_class_name_and_shows_every_section(tmp_path):
     out = tmp_path / "reports"
     report(fake_run(tmp_path / "in"), out)
@@ -235,6 +238,7 @@ def test_html_escapes_a_class_name_and_shows_every_section(tmp_path):
 
 
 @pytest.mark.parametrize("flag", [True, False])
+@pytest.mark.slow
 def test_a_classifier_at_chance_level_is_warned_about_only_when_marked(tmp_path, flag):
     out = tmp_path / "reports"
     report(fake_run(tmp_path / "in", at_chance=flag), out)
@@ -243,6 +247,7 @@ def test_a_classifier_at_chance_level_is_warned_about_only_when_marked(tmp_path,
     assert ("visual classifier ends at chance level" in summary) is flag
 
 
+@pytest.mark.slow
 def test_timings_and_training_plot_data_come_from_the_input_folders(tmp_path):
     out = tmp_path / "reports"
     report(fake_run(tmp_path / "in"), out)

@@ -364,6 +364,7 @@ def test_cut_tiles_without_markers_is_close_to_cleaning_the_whole_frame(rendered
 
 @needs_data
 @pytest.mark.parametrize(("visual_crop", "fraction", "size", "tolerance", "mean_tolerance"), SHRINKING)
+@pytest.mark.slow
 def test_cut_tiles_without_markers_is_close_to_cleaning_the_whole_real_frame(visual_crop, fraction, size,
                                                                               tolerance, mean_tolerance):
     check_fast_tiles([load(path) for path in TACTILE], visual_crop, fraction, size, tolerance, mean_tolerance)
@@ -509,6 +510,7 @@ def test_contact_box_of_all_contact_real_tile_is_whole_frame(path):
 # --- the ROI stage streams: memory grows with the tile table, not with the pixels ---------------
 
 
+@pytest.mark.slow
 def test_roi_stage_memory_grows_with_the_tile_table_not_with_pixels(tmp_path):
     import gc
     import tracemalloc

@@ -56,6 +56,7 @@ def all_finite(module: nn.Module) -> bool:
 
 
 @pytest.mark.parametrize("name", [case.name for case in EDGE_CASES])
+@pytest.mark.slow
 def test_edge_case_trains_to_a_finite_model_or_stops_clearly(results, name):
     case = next(c for c in EDGE_CASES if c.name == name)
     result = results(name)
@@ -126,6 +127,7 @@ def pairs_folder(root):
     pd.DataFrame(tiles).to_parquet(root / "pairs/splits.parquet")
 
 
+@pytest.mark.slow
 def test_run_train_never_writes_a_diverged_model(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     pairs_folder(tmp_path)

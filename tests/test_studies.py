@@ -38,6 +38,7 @@ def test_overrides_must_give_valid_params(default_params):
         apply_overrides(default_params, {"preset.size": 48})
 
 
+@pytest.mark.slow
 def test_every_declared_study_resolves_to_valid_params(default_params):
     for kind, table in (("experiments", default_params["studies"]["experiments"]["runs"]),
                         ("tradeoff", default_params["studies"]["tradeoff"]["settings"])):

@@ -133,6 +133,7 @@ def nearest_centroid_accuracy(features: np.ndarray, labels: np.ndarray, train: n
     return float((pred == labels[~train]).mean())
 
 
+@pytest.mark.slow
 def test_classes_are_distinct_for_a_nearest_centroid_classifier() -> None:
     per_class, n_train = 9, 6
     visual_f, tactile_f, labels = [], [], []
@@ -273,6 +274,7 @@ def test_png_files_are_rgb_in_the_right_channel_order(tmp_path: Path) -> None:
     assert np.array_equal(rgb, render_gelsight(patch, np.random.default_rng(seed_seq[3])))
 
 
+@pytest.mark.slow
 def test_one_and_two_workers_write_identical_files(tmp_path: Path) -> None:
     args = dict(classes=["plain_weave", "printed", "rib_knit"], samples_per_class=4, size=32, seed=3,
                 progress=False)

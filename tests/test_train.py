@@ -45,6 +45,7 @@ def same_weights(a: dict, b: dict) -> bool:
     return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
+@pytest.mark.slow
 def test_generator_overfits_a_single_aligned_pair():
     data = texture_pairs(n=1)
     settings = dict(SETTINGS, iterations=150, batch_size=1, noise=False, lr=0.002)
@@ -62,6 +63,7 @@ def test_generator_overfits_a_single_aligned_pair():
 
 
 @pytest.mark.parametrize("kind", ["global", "patch"])
+@pytest.mark.slow
 def test_both_discriminators_train(kind):
     settings = dict(SETTINGS, discriminator=kind, kernel=5 if kind == "global" else 4, iterations=60, batch_size=4)
     result = train_translator(texture_pairs(), settings, dict(RUN, log_every=10, checkpoint_every=1000), "v2t", "all",
@@ -82,6 +84,7 @@ def test_training_is_deterministic_on_cpu(tmp_path):
     assert not same_weights(weights(runs[0].generator), weights(other.generator))
 
 
+@pytest.mark.slow
 def test_resume_gives_the_same_weights_as_an_uninterrupted_run(tmp_path, capsys):
     val = texture_pairs(seed=3)
     full = train_translator(texture_pairs(), dict(SETTINGS, iterations=12), RUN, "v2t", "all",
@@ -318,6 +321,7 @@ def edit_checkpoint(path, change) -> None:
     torch.save(state, path)
 
 
+@pytest.mark.slow
 def test_a_checkpoint_is_resumed_only_when_params_data_and_code_all_match(tmp_path, capsys):
     run_in(tmp_path, 4)
     assert run_in(tmp_path, 8).resumed_from == 4
@@ -381,6 +385,7 @@ def test_an_absurd_learning_rate_stops_training_with_the_quantity_and_the_remedy
     assert not (tmp_path / "last.pt").exists()
 
 
+@pytest.mark.slow
 def test_the_default_preset_on_structured_pairs_does_not_trip_the_divergence_guard():
     params = yaml.safe_load((REPO / "params.yaml").read_text())
     settings = dict(model_settings(params), iterations=24)  # past the start of the validation check (22 steps)
@@ -392,6 +397,7 @@ def test_the_default_preset_on_structured_pairs_does_not_trip_the_divergence_gua
     assert result.steps == 24 and result.history[-1]["val_l1"] < untrained  # measured: 0.46 against 0.48
 
 
+@pytest.mark.slow
 def test_a_generator_that_ends_worse_on_validation_than_untrained_is_stopped():
     data, validation = texture_pairs(n=2), texture_pairs(n=2)
     validation.targets = 255 - data.targets  # validation asks for the inverse of what training teaches
