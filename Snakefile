@@ -5,7 +5,7 @@
 
 import yaml
 from vtgen.io.params import validate_params
-from vtgen.pipeline import outputs, snakemake_rule, stages
+from vtgen.pipeline import outputs, snakemake_rule, stages, write_params_records
 from vtgen.io.runlock import hold_run_lock
 
 configfile: "params.yaml"
@@ -18,6 +18,9 @@ if config != yaml.safe_load(open("params.yaml")):
         "(or use `dvc exp run -S key=value`) instead of --config/--configfile overrides"
     )
 validate_params(config)
+# each stage's params values as a file among its inputs: a changed value reruns the stage even when
+# its outputs were made by DVC, of which Snakemake's own records know nothing
+write_params_records(config)
 
 report: "workflow/report/workflow.rst"
 

@@ -86,7 +86,8 @@ def snakemake_jobs(dry_run: str) -> tuple[set[str], set[str]]:
         wildcards = re.search(r"^\s+wildcards: (.*)$", block, flags=re.M)
         name = head[1] + ("@" + "-".join(w.split("=", 1)[1] for w in wildcards[1].split(", ")) if wildcards else "")
         jobs.add(name)
-        if re.search(r"^\s+reason:.*Params have changed", block, flags=re.M):
+        # Snakemake's own params record, or vtgen's (a file among the inputs, see vtgen.pipeline.write_params_records)
+        if re.search(r"^\s+reason:.*(Params have changed|Updated input files:.*\.vtgen/params/)", block, flags=re.M):
             by_params.add(name)
     return jobs, by_params
 

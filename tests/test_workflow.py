@@ -101,7 +101,8 @@ def test_snakemake_and_dvc_run_the_same_commands_and_outputs(snakemake_project, 
         job = jobs[outputs(stage)]
         deps = {str(d.def_path) for d in stage.deps} - {"params.yaml"}
         # a DVC dependency on a folder covers the Snakemake inputs inside it (generate reads models/<direction>/)
-        inputs = {next((d for d in deps if i.startswith(d + "/")), i) for i in job["input"].split(", ")}
+        inputs = {next((d for d in deps if i.startswith(d + "/")), i) for i in job["input"].split(", ")
+                  if not i.startswith(".vtgen/params/")}  # Snakemake's record of the params DVC tracks itself
         assert stage.cmd == job["cmd"], stage.name
         assert deps == inputs, stage.name
 

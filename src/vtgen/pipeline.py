@@ -293,7 +293,7 @@ def snakemake_rule(stage: Stage, params: dict, root: Path | None = None) -> dict
         inputs += paths
     outputs = list(stage.outputs) + list(stage.metrics) + list(stage.plots)
     return {
-        "inputs": inputs + code_deps(stage, root),
+        "inputs": inputs + code_deps(stage, root) + [params_record(stage)],
         "outputs": outputs,
         "directories": [p for p in stage.outputs if not Path(p).suffix],
         "params": {key.replace(".", "_").replace("${", "").replace("}", ""): param_value(params, key)
@@ -302,6 +302,31 @@ def snakemake_rule(stage: Stage, params: dict, root: Path | None = None) -> dict
         "constraints": {name: "|".join(re.escape(v) for v in values[name]) for name in own},
         "command": _command_for(stage.command),
     }
+
+
+PARAMS_RECORDS = Path(".vtgen") / "params"
+
+
+def params_record(stage: Stage) -> str:
+    """The file holding the params values ``stage`` reads, a Snakemake input (see :func:`write_params_records`)."""
+    return (PARAMS_RECORDS / f"{stage.name}.json").as_posix()
+
+
+def write_params_records(params: dict, root: Path = Path(".")) -> None:
+    """Write each stage's params values to its record, touching only records whose values changed.
+
+    Snakemake notices changed params through its own metadata, which outputs made by another tool
+    (``dvc repro``) do not have: it would then call the outputs of a run on other data up to date.
+    A record is an input like any file, so a changed value reruns the stage whoever made its outputs.
+    """
+    import json
+
+    for stage in stages(params, "main") + stages(params, "studies"):
+        path = root / params_record(stage)
+        text = json.dumps({key: param_value(params, key) for key in stage.params}, sort_keys=True) + "\n"
+        if not path.is_file() or path.read_text() != text:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(text)
 
 
 def outputs(params: dict, pipeline: str = "main") -> list[str]:
