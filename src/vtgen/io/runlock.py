@@ -6,8 +6,10 @@ exits, so a killed run never leaves a lock that needs a manual unlock.
 - ``run.lock``, held exclusively by whoever drives a run: a Snakemake run from its start
   (``onstart``) to its end, or a stage command started by anything else (``dvc repro``, ``dvc exp
   run``, a user) for as long as it runs. A second driver is refused with a message naming the first.
-- ``jobs.lock``, held shared by every running stage command. A new driver waits until nobody holds
-  it, so the jobs a killed Snakemake left running finish before a new run touches their outputs.
+- ``jobs.lock``, held shared by every running stage command, each of which also leaves its pid in
+  ``jobs/<pid>``. A new driver stops the jobs a killed Snakemake left running (SIGTERM; the run
+  it drives redoes them, training from its last checkpoint) and waits until nobody holds the lock,
+  so no orphaned job writes beside the new run.
 
 A Snakemake run passes the right to run to its jobs through :data:`OWNER_ENV`.
 """
@@ -18,6 +20,7 @@ import contextlib
 import fcntl
 import json
 import os
+import signal
 import sys
 import time
 from collections.abc import Iterator
@@ -44,14 +47,32 @@ def _open(path: Path):
     return open(path, "a+")
 
 
-def _wait_for_orphaned_jobs(jobs: Path) -> None:
-    """Block until no stage command holds ``jobs.lock`` (only jobs of a killed run can, at this point)."""
+def _orphaned_pids(records: Path) -> list[int]:
+    """Pids recorded in ``records`` whose process is still a running vtgen command."""
+    alive = []
+    for record in records.glob("*"):
+        try:
+            pid = int(record.name)
+            if b"vtgen" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                alive.append(pid)
+        except (ValueError, OSError):
+            continue
+    return sorted(alive)
+
+
+def _stop_orphaned_jobs(jobs: Path) -> None:
+    """Stop the stage commands a killed run left running, then block until none holds ``jobs.lock``."""
     with _open(jobs) as handle:
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            print(f"vtgen: waiting for stage commands left running by an earlier, killed run to finish ({jobs})",
-                  file=sys.stderr, flush=True)
+            pids = _orphaned_pids(jobs.with_name("jobs"))
+            print(f"vtgen: stopping {len(pids)} stage command(s) left running by an earlier, killed run "
+                  f"(pids {', '.join(map(str, pids)) or 'unknown'}); this run redoes their work", file=sys.stderr,
+                  flush=True)
+            for pid in pids:
+                with contextlib.suppress(OSError):
+                    os.kill(pid, signal.SIGTERM)
             fcntl.flock(handle, fcntl.LOCK_EX)
         fcntl.flock(handle, fcntl.LOCK_UN)
 
@@ -72,7 +93,7 @@ def hold_run_lock(tool: str, root: str | Path = ".") -> None:
             f"{path}: another run of this project is in progress ({holder.get('tool', 'unknown tool')}, "
             f"pid {holder.get('pid', '?')}, since {holder.get('since', '?')}); wait for it to finish or stop it, "
             f"then run again (Snakemake and DVC share the outputs, so they never run at once)") from None
-    _wait_for_orphaned_jobs(path.with_name("jobs.lock"))
+    _stop_orphaned_jobs(path.with_name("jobs.lock"))
     handle.seek(0)
     handle.truncate()
     handle.write(json.dumps({"tool": tool, "pid": os.getpid(), "since": time.strftime("%Y-%m-%d %H:%M:%S")}))
@@ -103,9 +124,13 @@ def run_lock(tool: str, root: str | Path = ".") -> Iterator[None]:
         hold_run_lock(tool, root)
     handle = _open(jobs)
     fcntl.flock(handle, fcntl.LOCK_SH)
+    record = jobs.with_name("jobs") / str(os.getpid())
+    record.parent.mkdir(exist_ok=True)
+    record.write_text(tool)
     try:
         yield
     finally:
+        record.unlink(missing_ok=True)
         handle.close()
         if drive:
             _release(run)
