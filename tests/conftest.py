@@ -99,10 +99,12 @@ def pair_tables(root, classes=("a", "b"), per_class=4, aligned=True):
             for modality in ("visual", "tactile"):
                 path = f"tiles/{modality}/{cls}/{i}.png"
                 write_image(root / path, rng.integers(0, 256, (32, 32, 3), dtype=np.uint8))
-                tiles.append({"path": path, "class": cls, "modality": modality, "source": f"{cls}/{i}", "split": split})
+                tiles.append({"path": path, "class": cls, "modality": modality, "source": f"{cls}/{i}",
+                              "group": f"{cls}/{i}", "split": split})
             rows.append({"direction": "v2t", "split": split, "class": cls, "input_path": f"tiles/visual/{cls}/{i}.png",
                          "target_path": f"tiles/tactile/{cls}/{i}.png", "input_source": f"{cls}/{i}",
-                         "target_source": f"{cls}/{i}", "aligned": aligned})
+                         "target_source": f"{cls}/{i}", "aligned": aligned,
+                         "pair_kind": "pixel" if aligned else "class"})
     return pd.DataFrame(rows), pd.DataFrame(tiles)
 
 

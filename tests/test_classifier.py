@@ -165,7 +165,8 @@ def fake_layout(root, classes=CLASSES, train=6, test=2, generated_train=3):
             for split, count in (("train", train), ("val", 1), ("test", test)):
                 for i in range(count):
                     path = tile(f"data/roi/{modality}/{cls}/{split}{i}.png", cls)
-                    rows.append(dict(path=path, **{"class": cls}, modality=modality, source=f"{cls}-{split}{i}", split=split))
+                    rows.append(dict(path=path, **{"class": cls}, modality=modality, source=f"{cls}-{split}{i}",
+                                     group=f"{cls}-{split}{i}", split=split))
     splits = pd.DataFrame(rows)
     (root / "data/pairs").mkdir(parents=True)
     splits.to_parquet(root / "data/pairs/splits.parquet")

@@ -439,7 +439,8 @@ def test_roi_stage_cuts_marker_free_tiles_from_full_frames(tmp_path):
 
     paths = TACTILE[:4]
     manifest = pd.DataFrame({"path": [str(p) for p in paths], "class": "11", "modality": "tactile", "split": "train",
-                             "source": [p.stem for p in paths], "pair_key": [p.stem for p in paths]})
+                             "source": [p.stem for p in paths], "group": [p.stem for p in paths],
+                             "pair_key": [p.stem for p in paths], "width": 256, "height": 256})
     roi = {"size": 64, "tactile_box": "full", "remove_markers": True, "visual_crop": "centre", "crop_fraction": 0.5}
     tiles = cut_dataset_tiles(manifest, roi, tmp_path, workers=2, progress=False)
     assert len(tiles) == len(paths) and (tiles[["box_x", "box_y", "box_w", "box_h"]] == [64, 64, 128, 128]).all().all()

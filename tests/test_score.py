@@ -40,7 +40,7 @@ def write_layout(root: Path, aligned: bool, perfect: bool, per_class: dict = Non
                     pixels[path] = _tile(rng, colours[name][modality])
                     Image.fromarray(pixels[path]).save(root / path)
                     rows.append({"path": path, "class": name, "modality": modality, "source": f"{name}/{split}{i}",
-                                 "split": split})
+                                 "group": f"{name}/{split}{i}", "split": split})
     splits = pd.DataFrame(rows)
     (root / "data/pairs").mkdir(parents=True)
     splits.to_parquet(root / "data/pairs/splits.parquet")
@@ -49,7 +49,8 @@ def write_layout(root: Path, aligned: bool, perfect: bool, per_class: dict = Non
         for row in splits[splits["modality"] == source].itertuples():
             pairs.append({"direction": direction, "split": row.split, "class": row._2, "input_path": row.path,
                           "target_path": row.path.replace(source, target), "input_source": row.source,
-                          "target_source": row.source, "aligned": aligned})
+                          "target_source": row.source, "aligned": aligned,
+                          "pair_kind": "pixel" if aligned else "class"})
         pairs = pd.DataFrame(pairs)
         pairs.to_parquet(root / f"data/pairs/{direction}.parquet")
         generated = []

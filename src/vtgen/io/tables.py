@@ -10,24 +10,30 @@ from __future__ import annotations
 import errno
 from pathlib import Path
 
-SPLIT_COLUMNS = ["path", "class", "modality", "source", "split"]
+# group: the unit of splitting (images of one group never straddle splits): the coarsest grouping the data
+# has (instance, session, pair key, source), merged across exact and near-duplicate images by ingest.
+SPLIT_COLUMNS = ["path", "class", "modality", "source", "group", "split"]
 
 PAIR_COLUMNS = [
-    "direction", "split", "class", "input_path", "target_path", "input_source", "target_source", "aligned",
+    "direction", "split", "class", "input_path", "target_path", "input_source", "target_source", "aligned", "pair_kind",
 ]
+# pair_kind: "pixel" (same view, same frame geometry: pixel-aligned; ``aligned`` is True), "name" (same pair key,
+# e.g. one moment seen by two sensors at different resolutions: a fixed pair, not pixel-aligned) or "class"
+# (input drawn from the same class, as the authors did for ViTac).
+PAIR_KINDS = ("pixel", "name", "class")
 
 GENERATED_COLUMNS = ["direction", "scope", "split", "class", "input_path", "output_path", "ground_truth_path", "model"]
 
 MANIFEST_COLUMNS = [
-    "path", "md5", "modality", "class", "split", "source", "pair_key",
+    "path", "md5", "modality", "class", "split", "source", "group", "pair_key",
     "width", "height", "channels", "bit_depth", "note",
 ]
 
 QUARANTINE_COLUMNS = ["path", "class", "modality", "reason"]
 
 TILE_COLUMNS = [
-    "tile_path", "image_path", "class", "modality", "split", "source", "pair_key", "tile_index",
-    "box_x", "box_y", "box_w", "box_h",
+    "tile_path", "image_path", "class", "modality", "split", "source", "group", "pair_key", "tile_index",
+    "box_x", "box_y", "box_w", "box_h", "frame_w", "frame_h",
 ]
 
 CANDIDATES = {

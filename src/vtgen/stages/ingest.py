@@ -175,7 +175,7 @@ def _inspect(candidate: Candidate) -> dict:
         return _quarantine(candidate.path, candidate.cls, candidate.modality, f"cannot read file: {exc.strerror or exc}")
     return {
         "path": candidate.path, "md5": md5, "modality": candidate.modality, "class": candidate.cls,
-        "split": candidate.split, "source": candidate.source, "pair_key": candidate.pair_key,
+        "split": candidate.split, "source": candidate.source, "group": candidate.source, "pair_key": candidate.pair_key,
         "width": image.rgb.shape[1], "height": image.rgb.shape[0], "channels": image.channels,
         "bit_depth": image.bit_depth, "note": "; ".join(n for n in (candidate.note, image.note) if n),
     }

@@ -99,6 +99,7 @@ def build_pairs(tiles: pd.DataFrame, direction: str, seed: int) -> tuple[pd.Data
                 "direction": direction, "split": split, "class": cls,
                 "input_path": source_row["path"], "target_path": target["path"],
                 "input_source": source_row["source"], "target_source": target["source"], "aligned": aligned,
+                "pair_kind": "pixel" if aligned else "class",
             })
         if not pool:
             warnings.append(f"{direction}: class {cls}, split {split}: no {source_mod} tiles, "

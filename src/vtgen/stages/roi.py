@@ -37,7 +37,7 @@ from vtgen.io.tables import read_table
 from vtgen.core.roi import Box, centre_box, contact_box, cut_tile, cut_tiles_without_markers, remove_markers, tile_boxes
 from vtgen.io.tables import TILE_COLUMNS
 
-MANIFEST_NEEDS = ["path", "class", "modality", "split", "source", "pair_key"]
+MANIFEST_NEEDS = ["path", "class", "modality", "split", "source", "group", "pair_key", "width", "height"]
 def tactile_region(frame, tactile_box) -> Box:
     """The part of a GelSight frame in contact: detected, the full frame, or a fixed box."""
     height, width = frame.shape[:2]
@@ -73,7 +73,7 @@ def _too_small(region: Box, roi: dict) -> str:
 
 # The tile table's columns taken from the image's manifest row, and the manifest column each comes from.
 _FROM_MANIFEST = {"image_path": "path", "class": "class", "modality": "modality", "split": "split",
-                  "source": "source", "pair_key": "pair_key"}
+                  "source": "source", "group": "group", "pair_key": "pair_key", "frame_w": "width", "frame_h": "height"}
 _BOX_COLUMNS = ["tile_index", "box_x", "box_y", "box_w", "box_h"]
 
 

@@ -68,7 +68,8 @@ class PairData:
     """Training pairs as uint8 tensors N x 3 x S x S, with what is needed to redraw unaligned inputs.
 
     ``input_pool[c]`` holds indices into ``pool_images`` of every training input tile of class
-    ``c``; an unaligned pair draws its input from there at every step.
+    ``c``; a class pair (``fixed`` False) draws its input from there at every step. ``fixed`` marks
+    pixel and name pairs, which keep their own input; it defaults to ``aligned``.
     """
 
     inputs: torch.Tensor
@@ -77,11 +78,16 @@ class PairData:
     aligned: torch.Tensor
     pool_images: torch.Tensor
     input_pool: dict[str, torch.Tensor] = field(default_factory=dict)
+    fixed: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if self.fixed is None:
+            self.fixed = self.aligned
 
     def fingerprint(self) -> str:
         """SHA-256 of the pixel data and pairing, so a checkpoint is only resumed on the same data."""
         digest = hashlib.sha256()
-        for tensor in (self.inputs, self.targets, self.aligned, self.pool_images):
+        for tensor in (self.inputs, self.targets, self.aligned, self.fixed, self.pool_images):
             digest.update(tensor.numpy().tobytes())
         digest.update(json.dumps(self.classes).encode())
         return digest.hexdigest()
@@ -111,17 +117,19 @@ def load_pair_data(pairs: pd.DataFrame, splits: pd.DataFrame, direction: str, sc
         targets=read_tiles(list(train["target_path"]), size, root),
         classes=list(train["class"]),
         aligned=torch.tensor(train["aligned"].to_numpy(dtype=bool)),
+        fixed=torch.tensor(train["pair_kind"].isin(["pixel", "name"]).to_numpy(dtype=bool)),
         pool_images=read_tiles(list(pool["path"]), size, root),
         input_pool={c: torch.from_numpy(np.flatnonzero(pool_classes == c)) for c in sorted(set(train["class"]))},
     )
 
 
 def draw_batch(data: PairData, batch_size: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """A batch of (input, target) uint8 images; unaligned targets get a fresh random input of their class."""
+    """A batch of (input, target) uint8 images; class pairs get a fresh random input of their class
+    (pixel and name pairs keep their own input)."""
     index = torch.randint(0, len(data.targets), (batch_size,), generator=generator)
     inputs = data.inputs[index]  # advanced indexing already copies
     for row, i in enumerate(index.tolist()):
-        if not data.aligned[i]:
+        if not data.fixed[i]:
             pool = data.input_pool[data.classes[i]]
             if len(pool):
                 inputs[row] = data.pool_images[pool[torch.randint(0, len(pool), (1,), generator=generator)]][0]

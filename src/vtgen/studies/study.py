@@ -334,7 +334,7 @@ def run_round_trip(variant: dict, pairs_dir: Path, work: Path, progress: bool = 
     generated_pairs = pd.DataFrame({
         "direction": "t2v", "split": "train", "class": made["class"].to_numpy(),
         "input_path": made["output_path"].to_numpy(), "target_path": made["input_path"].to_numpy(),
-        "input_source": "generated", "target_source": "generated", "aligned": True})
+        "input_source": "generated", "target_source": "generated", "aligned": True, "pair_kind": "pixel"})
     mixed_pairs = pd.concat([real_t2v[real_t2v["split"] != "train"], keep, generated_pairs], ignore_index=True)
     mixed_dir = work / "mixed_pairs"
     mixed_dir.mkdir(parents=True, exist_ok=True)
