@@ -200,6 +200,20 @@ class ClassifierRun:
 
 
 @torch.no_grad()
+def predict(model: nn.Module, images: torch.Tensor, batch_size: int = EVAL_BATCH) -> torch.Tensor:
+    """Arg-max class of each of ``images`` (int64, on the CPU), in eval mode; empty for an empty set."""
+    if len(images) == 0:
+        return torch.empty(0, dtype=torch.long)
+    device = next(model.parameters()).device
+    was_training = model.training
+    model.eval()
+    labels = [model(images[start:start + batch_size].to(device)).argmax(dim=1).cpu()
+              for start in range(0, len(images), batch_size)]
+    model.train(was_training)
+    return torch.cat(labels)
+
+
+@torch.no_grad()
 def accuracy(model: nn.Module, images: torch.Tensor, labels: torch.Tensor, batch_size: int = EVAL_BATCH) -> float:
     """Share of ``images`` whose arg-max logit is the label, in eval mode; NaN for an empty set."""
     if len(images) == 0:
