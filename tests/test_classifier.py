@@ -213,6 +213,31 @@ def test_stage_writes_tables_summary_and_plot(tmp_path, monkeypatch):
     assert set(summary["settings"]) == set(SETTINGS) and len(summary["settings"]["real"]["epoch_mean"]) == 2
     assert 0 <= summary["gan_test"]["final_mean"] <= 1
     assert (out / "curves.png").stat().st_size > 0
+    # n and a 95% Wilson interval per class and setting; comparisons are ranked only outside the noise
+    by_class = pd.read_csv(out / "by_class.csv", keep_default_na=False)
+    assert set(by_class["setting"]) == set(SETTINGS) | {"GAN-test"}
+    assert (by_class.loc[by_class["class"] != "(all)", "images"] == 2).all()  # 2 test images per class
+    assert (by_class.loc[by_class["class"] == "(all)", "images"] == 6).all()
+    assert ((by_class["low"] <= by_class["accuracy"]) & (by_class["accuracy"] <= by_class["high"])).all()
+    overall = by_class[(by_class["class"] == "(all)") & (by_class["setting"] == "real")].iloc[0]
+    assert overall["accuracy"] == pytest.approx(summary["settings"]["real"]["final_mean"])
+    assert summary["settings"]["real"]["interval"] == pytest.approx(list(wilson_interval(overall["accuracy"], 6)), abs=1e-6)
+    assert [c["setting"] for c in summary["comparisons"]] == ["real+generated", "low-data real+generated"]
+    for item in summary["comparisons"]:
+        assert item["overlap"] == (item["verdict"] == "within noise (95% intervals overlap)")
+    assert summary["test_images_per_class"] == {c: 2 for c in CLASSES}
+    # the real-only classifier of the first seed is kept as the score stage's feature encoder
+    from vtgen.core.classifier import predict
+    from vtgen.io.checkpoints import load_classifier
+    from vtgen.io.images import read_tiles
+
+    encoder, record = load_classifier(out / "encoder.pt")
+    assert record["classes"] == list(CLASSES) and record["seed"] == 0 and record["modality"] == "tactile"
+    real = pd.read_parquet(tmp_path / "data/pairs/splits.parquet")
+    test = real[(real["modality"] == "tactile") & (real["split"] == "test")].sort_values("path")
+    labels = np.array([CLASSES.index(c) for c in test["class"]])
+    seed0 = table[(table["setting"] == "real") & (table["seed"] == 0) & (table["epoch"] == 2)]["test_accuracy"].iloc[0]
+    assert (predict(encoder, read_tiles(list(test["path"]), 32)).numpy() == labels).mean() == pytest.approx(seed0)
 
 
 def test_stage_refuses_a_generated_training_image_from_a_test_input(tmp_path, monkeypatch):

@@ -39,8 +39,8 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from vtgen.core.classifier import TrainingDiverged, at_chance, train_classifier
-from vtgen.io.checkpoints import read_state_dict
+from vtgen.core.classifier import TrainingDiverged, at_chance, predict, train_classifier, wilson_interval
+from vtgen.io.checkpoints import read_state_dict, save_classifier
 from vtgen.io.tables import GENERATED_COLUMNS
 from vtgen.io.images import atomic_output_dir
 from vtgen.io.tables import read_table
@@ -55,6 +55,10 @@ ACCURACY_COLUMNS = {
     "at_chance": "bool", "gan_test_accuracy": "float64", "train_images": "int64", "real_images": "int64", "generated_images": "int64",
     "seconds": "float64",
 }
+BY_CLASS_COLUMNS = ["modality", "setting", "class", "images", "accuracy", "low", "high", "seeds"]
+# (with generated images, without): the paper's question, asked at full and at low data
+COMPARISONS = (("real+generated", "real"), ("low-data real+generated", "low-data real"))
+GAN_TEST = "GAN-test"
 
 
 def direction_producing(modality: str) -> str:
@@ -125,15 +129,62 @@ def summarise(table: pd.DataFrame, num_classes: int, test_images: int,
             "epoch_std": _finite_list(by_epoch.std(ddof=1).fillna(0.0)),
             "train_images": int(final["train_images"].iloc[0]), "generated_images": int(final["generated_images"].iloc[0]),
             "at_chance": at_chance(mean, test_images, num_classes) if mean is not None else False,
+            "test_images": test_images, "interval": _interval(mean, test_images),
         }
         if rows["gan_test_accuracy"].notna().any():
             gan = rows.groupby("epoch")["gan_test_accuracy"]
             mean, std = _mean_std(final["gan_test_accuracy"])
             gan_test = {"setting": setting, "final_mean": mean, "final_std": std, "images": gan_test_images,
+                        "interval": _interval(mean, gan_test_images),
                         "at_chance": at_chance(mean, gan_test_images, num_classes) if mean is not None else False,
                         "epoch_mean": _finite_list(gan.mean()),
                         "epoch_std": _finite_list(gan.std(ddof=1).fillna(0.0))}
     return per_setting, gan_test
+
+
+def _interval(accuracy: float | None, count: int) -> list[float] | None:
+    """The 95% Wilson interval of ``accuracy`` on ``count`` images (seeds share the test images, so they
+    are not counted once per seed); None when nothing was measured."""
+    if accuracy is None or count <= 0:
+        return None
+    return [round(v, 6) for v in wilson_interval(accuracy, count)]
+
+
+def accuracy_by_class(predictions: dict[tuple[str, int], np.ndarray], labels: np.ndarray, classes: list[str],
+                      modality: str) -> pd.DataFrame:
+    """Final-epoch accuracy per setting and class (BY_CLASS_COLUMNS), with ``images`` (n) and the 95% Wilson
+    interval; one ``(all)`` row per setting. ``predictions[(setting, seed)]`` are the predicted labels of the
+    images whose true labels are ``labels``; the accuracy is the mean over seeds."""
+    rows = []
+    for setting in dict.fromkeys(name for name, _ in predictions):
+        runs = [p for (name, _), p in predictions.items() if name == setting]
+        groups = [(name, labels == i) for i, name in enumerate(classes)] + [("(all)", np.ones(len(labels), bool))]
+        for name, rows_of in groups:
+            n = int(rows_of.sum())
+            if n == 0:
+                continue
+            value = float(np.mean([(p[rows_of] == labels[rows_of]).mean() for p in runs]))
+            low, high = wilson_interval(value, n)
+            rows.append({"modality": modality, "setting": setting, "class": name, "images": n, "accuracy": value,
+                         "low": low, "high": high, "seeds": len(runs)})
+    return pd.DataFrame(rows, columns=BY_CLASS_COLUMNS)
+
+
+def compare_settings(per_setting: dict) -> list[dict]:
+    """With vs without generated images (COMPARISONS): the difference of final mean accuracies and a
+    verdict that ranks them only when their 95% intervals do not overlap."""
+    result = []
+    for with_generated, without in COMPARISONS:
+        a, b = per_setting.get(with_generated), per_setting.get(without)
+        if not a or not b or a["interval"] is None or b["interval"] is None:
+            continue
+        overlap = a["interval"][0] <= b["interval"][1] and b["interval"][0] <= a["interval"][1]
+        difference = a["final_mean"] - b["final_mean"]
+        verdict = ("within noise (95% intervals overlap)" if overlap
+                   else "generated images help" if difference > 0 else "generated images hurt")
+        result.append({"setting": with_generated, "against": without, "difference": round(difference, 6),
+                       "overlap": overlap, "verdict": verdict})
+    return result
 
 
 def chance_warnings(modality: str, summary: dict) -> list[str]:
@@ -187,10 +238,13 @@ def plot_curves(path: Path, modality: str, per_setting: dict, gan_test: dict | N
 
 
 def _write_outputs(tmp: Path, table: pd.DataFrame, summary: dict, per_setting: dict, gan_test: dict | None,
-                   message: str | None) -> None:
+                   message: str | None, by_class: pd.DataFrame | None = None) -> None:
     table = table.astype(ACCURACY_COLUMNS)[list(ACCURACY_COLUMNS)]
     table.to_parquet(tmp / "accuracy.parquet", index=False)
     table.to_csv(tmp / "accuracy.csv", index=False)
+    by_class = pd.DataFrame(columns=BY_CLASS_COLUMNS) if by_class is None else by_class
+    by_class.to_parquet(tmp / "by_class.parquet", index=False)
+    by_class.to_csv(tmp / "by_class.csv", index=False, float_format="%.6f")
     (tmp / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
     plot_curves(tmp / "curves.png", summary["modality"], per_setting, gan_test, message)
 
@@ -226,13 +280,23 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     sets = _image_sets(real, generated, classes, cfg["size"], direction, summary["notes"])
     settings, skipped = _applicable_settings(sets, modality, generated_file, summary["notes"])
     device = resolve_device(params["translation"]["device"])
-    table = _train_settings(sets, settings, cfg, modality, len(classes), device, progress)
+    table, predictions, encoder = _train_settings(sets, settings, cfg, modality, len(classes), device, progress)
     per_setting, gan_test = summarise(table, len(classes), len(sets["test"][0]), len(sets["gan"][0]))
+    by_class = pd.concat([
+        accuracy_by_class({k: v for k, v in predictions.items() if k[0] != GAN_TEST}, sets["test"][1].numpy(), classes,
+                          modality),
+        accuracy_by_class({k: v for k, v in predictions.items() if k[0] == GAN_TEST}, sets["gan"][1].numpy(), classes,
+                          modality)], ignore_index=True)
     summary.update(status="ok", chance=1.0 / len(classes), device=str(device), counts=sets["counts"],
-                   settings=per_setting, skipped=skipped, gan_test=gan_test,
+                   settings=per_setting, skipped=skipped, gan_test=gan_test, comparisons=compare_settings(per_setting),
+                   test_images_per_class=sets["counts"]["per_class_real_test"],
+                   encoder={"file": "encoder.pt", "setting": "real", "seed": cfg["seeds"][0]},
                    wall_seconds=round(float(table.groupby(["setting", "seed"])["seconds"].first().sum()), 2))
     with atomic_output_dir(out_dir) as tmp:
-        _write_outputs(tmp, table, summary, per_setting, gan_test, None)
+        _write_outputs(tmp, table, summary, per_setting, gan_test, None, by_class)
+        save_classifier(tmp / "encoder.pt", encoder, classes,
+                        {"modality": modality, "setting": "real", "seed": cfg["seeds"][0],
+                         "final_test_accuracy": per_setting["real"]["final_mean"]})
     _print_result(summary, modality, len(cfg["seeds"]), out_dir)
     return summary
 
@@ -243,7 +307,7 @@ def _not_applicable(summary: dict, modality: str, real_train: int, out_dir: Path
     held = f" ({classes[0]})" if classes else ""
     status = f"not applicable: classification needs at least 2 classes, the data has {len(classes)}{held}"
     summary.update(status=status, chance=None, counts={"real_train": real_train}, settings={}, skipped={},
-                   gan_test=None)
+                   gan_test=None, comparisons=[])
     with atomic_output_dir(out_dir) as tmp:
         _write_outputs(tmp, pd.DataFrame(columns=list(ACCURACY_COLUMNS)), summary, {}, None, status)
     print(f"classify {modality}: warning: {status}; empty tables -> {out_dir}")
@@ -280,6 +344,7 @@ def _image_sets(real: pd.DataFrame, generated: pd.DataFrame, classes: list[str],
     sets["counts"] = {"real_train": len(real_train), "real_test": len(real_test), "generated_train": len(gen_train),
                       "generated_test": len(gen_test),
                       "per_class_real_train": real_train["class"].value_counts().sort_index().to_dict(),
+                      "per_class_real_test": {c: int((real_test["class"] == c).sum()) for c in classes},
                       "low_data_real_train": {}}
     return sets
 
@@ -299,15 +364,17 @@ def _applicable_settings(sets: dict, modality: str, generated_file: Path, notes:
 
 
 def _train_settings(sets: dict, settings: list[str], cfg: dict, modality: str, num_classes: int, device,
-                    progress: bool) -> pd.DataFrame:
-    """Train one classifier per seed and setting; one accuracy row per epoch."""
+                    progress: bool) -> tuple[pd.DataFrame, dict, torch.nn.Module]:
+    """Train one classifier per seed and setting. Returns one accuracy row per epoch, the final predicted
+    labels per (setting, seed) on the real test images (and on the generated test images under
+    ``(GAN_TEST, seed)``, by the ``real`` classifier), and the ``real`` classifier of the first seed."""
     weights_file = cfg["weights"] or None
     if weights_file and not Path(weights_file).is_file():
         raise ValueError(f"{weights_file}: weights file not found (classify.weights; \"\" trains from scratch)")
     weights = read_state_dict(weights_file) if weights_file else None
     (train_x, train_y), (test_x, test_y), (gen_x, gen_y), (gan_x, gan_y) = (
         sets[k] for k in ("train", "test", "generated", "gan"))
-    rows = []
+    rows, predictions, encoder = [], {}, None
     bar = tqdm(total=len(settings) * len(cfg["seeds"]), desc=f"classify {modality}", unit="run", disable=not progress,
                dynamic_ncols=True)
     for seed in cfg["seeds"]:
@@ -334,6 +401,11 @@ def _train_settings(sets: dict, settings: list[str], cfg: dict, modality: str, n
                 raise RuntimeError(f"classify {modality}: setting '{setting}', seed {seed}: the training loss became "
                                    f"non-finite ({exc.loss}) in epoch {exc.epoch}; lower classify.lr "
                                    f"(now {cfg['lr']:g})") from exc
+            predictions[(setting, seed)] = predict(run.model, test_x).numpy()
+            if setting == "real":
+                encoder = encoder or run.model
+                if len(gan_x):
+                    predictions[(GAN_TEST, seed)] = predict(run.model, gan_x).numpy()
             gan = run.extra_accuracy.get("gan_test", [math.nan] * len(run.test_accuracy))
             for epoch, (acc, gan_acc) in enumerate(zip(run.test_accuracy, gan), start=1):
                 rows.append({"modality": modality, "setting": setting, "seed": seed, "epoch": epoch,
@@ -343,7 +415,7 @@ def _train_settings(sets: dict, settings: list[str], cfg: dict, modality: str, n
                              "seconds": run.seconds})
             bar.update(1)
     bar.close()
-    return pd.DataFrame(rows, columns=list(ACCURACY_COLUMNS))
+    return pd.DataFrame(rows, columns=list(ACCURACY_COLUMNS)), predictions, encoder
 
 
 def _print_result(summary: dict, modality: str, seeds: int, out_dir: Path) -> None:
@@ -353,5 +425,8 @@ def _print_result(summary: dict, modality: str, seeds: int, out_dir: Path) -> No
     gan_text = f", GAN-test {gan_test['final_mean']:.3f}" if gan_test and gan_test["final_mean"] is not None else ""
     for line in chance_warnings(modality, summary):
         print(line)
+    for item in summary["comparisons"]:
+        print(f"classify {modality}: {item['setting']} vs {item['against']}: {item['difference']:+.3f}, "
+              f"{item['verdict']} (n = {summary['counts']['real_test']} test images)")
     print(f"classify {modality}: final test accuracy over {seeds} seed(s): {finals}{gan_text} "
           f"({len(summary['classes'])} classes, {summary['wall_seconds']:.0f} s training) -> {out_dir}")
