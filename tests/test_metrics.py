@@ -489,3 +489,23 @@ def test_kernel_compiles_without_a_writable_cache():
     namespace: dict = {}
     exec("def double(v):\n    return 2 * v\n", namespace)  # no source file: numba has nowhere to cache it
     assert metrics._jit()(namespace["double"])(21) == 42
+
+
+def test_bootstrap_interval_matches_the_normal_approximation_and_resamples_whole_groups():
+    from vtgen.core.metrics import bootstrap_interval
+
+    rng = np.random.default_rng(3)
+    values = rng.normal(0.5, 0.1, 400)
+    low, high = bootstrap_interval(values, resamples=4000, seed=0)
+    half = 1.96 * values.std(ddof=1) / np.sqrt(len(values))
+    assert low == pytest.approx(values.mean() - half, abs=0.002) and high == pytest.approx(values.mean() + half, abs=0.002)
+    assert (low, high) == bootstrap_interval(values, resamples=4000, seed=0)  # seeded
+    # 40 groups of 10 identical values: the images of a group are not independent, so the interval
+    # is that of 40 values, about sqrt(10) times wider than if each image counted
+    grouped = np.repeat(values[:40], 10)
+    g_low, g_high = bootstrap_interval(grouped, np.repeat(np.arange(40), 10), resamples=4000)
+    i_low, i_high = bootstrap_interval(grouped, resamples=4000)
+    assert 2.5 < (g_high - g_low) / (i_high - i_low) < 4.0
+    assert bootstrap_interval(np.array([0.2, 0.4]), np.array(["a", "a"])) == (pytest.approx(0.3), pytest.approx(0.3))
+    assert bootstrap_interval(np.array([0.2, np.nan, 0.4]))[0] >= 0.2
+    assert all(np.isnan(bootstrap_interval(np.array([np.nan]))))

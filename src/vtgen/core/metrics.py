@@ -387,3 +387,29 @@ def pairwise_colour_ssim(a, b, data_range: float | None = None, batch_size: int 
         pairs = np.arange(start, min(start + int(batch_size), n * m))
         matrix[pairs] = _kernel_ssim(xs, ys, pairs // m, pairs % m, data_range, x_means, y_means)
     return matrix.reshape(n, m)
+
+
+def bootstrap_interval(values: np.ndarray, groups: np.ndarray | None = None, resamples: int = 1000,
+                       seed: int = 0, level: float = 0.95) -> tuple[float, float]:
+    """Percentile bootstrap interval (Efron & Tibshirani 1993) of the mean of ``values``, resampling whole
+    ``groups`` (e.g. the test sources, whose images are not independent) with replacement; every value is
+    its own group when ``groups`` is None. NaN values are ignored. (nan, nan) when no finite value is
+    left; (m, m) for a single group, whose spread cannot be estimated from the data."""
+    values = np.asarray(values, dtype=np.float64)
+    groups = np.arange(len(values)) if groups is None else np.asarray(groups)
+    keep = np.isfinite(values)
+    values, groups = values[keep], groups[keep]
+    if len(values) == 0:
+        return math.nan, math.nan
+    labels, index = np.unique(groups, return_inverse=True)
+    sums = np.bincount(index, weights=values, minlength=len(labels))
+    counts = np.bincount(index, minlength=len(labels)).astype(np.float64)
+    if len(labels) == 1:
+        mean = float(sums[0] / counts[0])
+        return mean, mean
+    rng = np.random.default_rng(seed)
+    draws = rng.integers(0, len(labels), size=(resamples, len(labels)))
+    means = sums[draws].sum(axis=1) / counts[draws].sum(axis=1)
+    tail = (1 - level) / 2
+    low, high = np.quantile(means, [tail, 1 - tail])
+    return float(low), float(high)

@@ -42,6 +42,8 @@ CANDIDATES = {
     "nearest_neighbour": "nearest-neighbour retrieval (training target of the closest training input)",
     "mean_image": "mean training image of the class",
     "flat_mean_colour": "flat image of the class's mean training colour",
+    "real_heldout": "real held-out half A against half B (real-vs-real level of the distribution metrics)",
+    "blurred_real": "real held-out half A under a Gaussian blur (what blur alone scores)",
 }
 
 def candidate_label(candidate: str, scope: str) -> str:
