@@ -539,3 +539,42 @@ def test_roi_stage_memory_grows_with_the_tile_table_not_with_pixels(tmp_path):
     # One decoded image is 27 KiB and its tile 3 KiB; a row dict and a future per image would be
     # about 3 KiB; the streamed stage keeps only the tile table (a few hundred bytes per tile).
     assert per_image < 1000, f"roi peak memory grows {per_image:.0f} bytes per image: {peaks}"
+
+
+# --- image_tiles: the per-image rule the stage applies ---------------------------------------------------
+
+
+@needs_data
+@pytest.mark.parametrize("roi", [
+    {"size": 64, "tactile_box": "full", "remove_markers": True, "visual_crop": "centre", "crop_fraction": 0.5},
+    {"size": 32, "tactile_box": "auto", "remove_markers": True, "visual_crop": "tiles", "crop_fraction": 0.5},
+    {"size": 48, "tactile_box": [10, 20, 200, 180], "remove_markers": False, "visual_crop": "centre", "crop_fraction": 1.0},
+], ids=["full-clean", "auto-tiles", "fixed"])
+def test_image_tiles_gives_the_stage_tiles(tmp_path, roi):
+    import pandas as pd
+
+    from vtgen.core.roi import image_tiles
+    from vtgen.io.images import read_rgb8
+    from vtgen.stages.roi import cut_dataset_tiles
+
+    paths = TACTILE[:2] + sorted((DATA / "11v").glob("*.jpg"))[:1]
+    modalities = ["tactile", "tactile", "visual"]
+    manifest = pd.DataFrame({"path": [str(p) for p in paths], "class": "11", "modality": modalities, "split": "train",
+                             "source": [p.stem for p in paths], "group": [p.stem for p in paths],
+                             "pair_key": [p.stem for p in paths], "width": 256, "height": 256})
+    table = cut_dataset_tiles(manifest, roi, tmp_path, workers=2, progress=False)
+    for path, modality in zip(paths, modalities):
+        boxes, tiles, reason = image_tiles(read_rgb8(path).rgb, modality, roi)
+        assert reason == "" and tiles and all(t.shape == (roi["size"], roi["size"], 3) for t in tiles)
+        rows = table[table["image_path"] == str(path)].sort_values("tile_index")
+        assert [Box(*r) for r in rows[["box_x", "box_y", "box_w", "box_h"]].itertuples(index=False)] == boxes
+        for tile_path, tile in zip(rows["tile_path"], tiles):
+            assert np.array_equal(read_rgb8(tmp_path / tile_path).rgb, tile)
+
+
+def test_image_tiles_reports_an_image_too_small():
+    from vtgen.core.roi import image_tiles
+
+    roi = {"size": 8, "tactile_box": "full", "remove_markers": False, "visual_crop": "centre", "crop_fraction": 0.4}
+    boxes, tiles, reason = image_tiles(np.zeros((2, 2, 3), np.uint8), "visual", roi)
+    assert (boxes, tiles) == ([], []) and "too small" in reason

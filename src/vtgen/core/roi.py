@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Mapping
 
 import cv2
 import numpy as np
@@ -394,3 +395,77 @@ def cut_tile(image: np.ndarray, box: Box, size: int) -> np.ndarray:
         return crop.copy()
     shrinking = size <= min(box.w, box.h)
     return cv2.resize(crop, (size, size), interpolation=cv2.INTER_AREA if shrinking else cv2.INTER_CUBIC)
+
+
+# --- the per-image ROI rule: region, crops and tiles of one image -------------------------------------------
+
+
+def tactile_region(frame: np.ndarray, tactile_box) -> Box:
+    """The part of a tactile frame to cut from: detected (``"auto"``), the ``"full"`` frame, or a fixed ``[x, y, w, h]``.
+
+    ``ValueError`` if a fixed box does not fit the frame.
+    """
+    height, width = frame.shape[:2]
+    if tactile_box == "auto":
+        return contact_box(frame)
+    if tactile_box == "full":
+        return Box(0, 0, width, height)
+    box = Box(*tactile_box)
+    if not box.fits(width, height):
+        raise ValueError(f"roi.tactile_box {list(tactile_box)} does not fit a {width}x{height} frame")
+    return box
+
+
+def crop_boxes(region: Box, visual_crop: str, crop_fraction: float) -> list[Box]:
+    """Square crops inside ``region``, in frame coordinates.
+
+    ``visual_crop="centre"``: one centred square of side ``floor(crop_fraction * min(w, h))``
+    (:func:`centre_box`); ``"tiles"``: a centred grid of squares of that side (:func:`tile_boxes`).
+    ``ValueError`` for another ``visual_crop``.
+    """
+    if visual_crop == "centre":
+        local = [centre_box(region.w, region.h, crop_fraction)]
+    elif visual_crop == "tiles":
+        side = max(1, int(crop_fraction * min(region.w, region.h)))
+        local = tile_boxes(region.w, region.h, side)
+    else:
+        raise ValueError(f"roi.visual_crop must be 'centre' or 'tiles', got '{visual_crop}'")
+    return [Box(region.x + b.x, region.y + b.y, b.w, b.h) for b in local]
+
+
+def too_small(region: Box, roi: Mapping) -> str:
+    """Why ``region`` cannot give a tile under ``roi``, or "" when it can."""
+    if roi["visual_crop"] == "centre" and int(roi["crop_fraction"] * min(region.w, region.h)) < 1:
+        return (f"image region {region.w}x{region.h} is too small for roi.crop_fraction {roi['crop_fraction']} "
+                f"(the crop would be under 1 pixel)")
+    return ""
+
+
+def image_tiles(image: np.ndarray, modality: str, roi: Mapping) -> tuple[list[Box], list[np.ndarray], str]:
+    """The ROI rule for one image: ``(boxes, tiles, reason)``.
+
+    ``image`` is (H, W, 3) uint8 RGB; ``modality`` is ``"tactile"`` or ``"visual"``; ``roi`` is
+    params.yaml's ``roi`` section (``size``, ``tactile_box``, ``remove_markers``, ``visual_crop``,
+    ``crop_fraction``). The region is the whole image for visual images and
+    :func:`tactile_region` for tactile frames; the crops are :func:`crop_boxes` of the region, in
+    frame coordinates; each tile is the crop resized to ``size`` (:func:`cut_tile`), a
+    (size, size, 3) uint8 array. With ``remove_markers`` the GelSight marker dots are painted out
+    of tactile tiles: with ``tactile_box: auto`` the whole frame is cleaned first
+    (:func:`remove_markers`: detection looks at all of it), otherwise only around each crop
+    (:func:`cut_tiles_without_markers`). ``reason`` is "" or why the image gives no tile (then
+    ``boxes`` and ``tiles`` are empty). ``ValueError`` for a fixed box that does not fit.
+    """
+    _check_rgb(image)
+    clean = modality == "tactile" and roi["remove_markers"]
+    if modality == "tactile":
+        if clean and roi["tactile_box"] == "auto":  # contact detection looks at the whole cleaned frame
+            image, clean = remove_markers(image), False
+        region = tactile_region(image, roi["tactile_box"])
+    else:
+        region = Box(0, 0, image.shape[1], image.shape[0])
+    if reason := too_small(region, roi):
+        return [], [], reason
+    boxes = crop_boxes(region, roi["visual_crop"], roi["crop_fraction"])
+    if clean:  # inpaints only around the boxes, at the tiles' resolution: same tiles as cleaning the frame, nearly
+        return boxes, cut_tiles_without_markers(image, boxes, roi["size"]), ""
+    return boxes, [cut_tile(image, box, roi["size"]) for box in boxes], ""

@@ -34,41 +34,10 @@ import pandas as pd
 
 from vtgen.io.images import atomic_output_dir, ImageError, labelled_sheet, read_rgb8, stream_map, write_png
 from vtgen.io.tables import read_table
-from vtgen.core.roi import Box, centre_box, contact_box, cut_tile, cut_tiles_without_markers, remove_markers, tile_boxes
+from vtgen.core.roi import crop_boxes, image_tiles, tactile_region  # noqa: F401 - crop_boxes, tactile_region: re-exported
 from vtgen.io.tables import TILE_COLUMNS
 
 MANIFEST_NEEDS = ["path", "class", "modality", "split", "source", "group", "pair_key", "width", "height"]
-def tactile_region(frame, tactile_box) -> Box:
-    """The part of a GelSight frame in contact: detected, the full frame, or a fixed box."""
-    height, width = frame.shape[:2]
-    if tactile_box == "auto":
-        return contact_box(frame)
-    if tactile_box == "full":
-        return Box(0, 0, width, height)
-    box = Box(*tactile_box)
-    if not box.fits(width, height):
-        raise ValueError(f"roi.tactile_box {list(tactile_box)} does not fit a {width}x{height} frame")
-    return box
-
-
-def crop_boxes(region: Box, visual_crop: str, crop_fraction: float) -> list[Box]:
-    """Square crops inside ``region``, in frame coordinates (see the module docstring)."""
-    if visual_crop == "centre":
-        local = [centre_box(region.w, region.h, crop_fraction)]
-    elif visual_crop == "tiles":
-        side = max(1, int(crop_fraction * min(region.w, region.h)))
-        local = tile_boxes(region.w, region.h, side)
-    else:
-        raise ValueError(f"roi.visual_crop must be 'centre' or 'tiles', got '{visual_crop}'")
-    return [Box(region.x + b.x, region.y + b.y, b.w, b.h) for b in local]
-
-
-def _too_small(region: Box, roi: dict) -> str:
-    """Why ``region`` cannot give a tile, or "" when it can."""
-    if roi["visual_crop"] == "centre" and int(roi["crop_fraction"] * min(region.w, region.h)) < 1:
-        return (f"image region {region.w}x{region.h} is too small for roi.crop_fraction {roi['crop_fraction']} "
-                f"(the crop would be under 1 pixel)")
-    return ""
 
 
 # The tile table's columns taken from the image's manifest row, and the manifest column each comes from.
@@ -85,17 +54,11 @@ def _tile_one(args) -> list[tuple] | str:
         image = read_rgb8(path).rgb
     except ImageError as exc:
         raise ImageError(f"{path}: {exc} (has it changed since the ingest stage? rerun ingest)") from exc
-    clean = modality == "tactile" and roi["remove_markers"]  # paint the GelSight marker dots out of the tiles
-    if modality == "tactile":
-        if clean and roi["tactile_box"] == "auto":  # contact detection looks at the whole cleaned frame
-            image, clean = remove_markers(image), False
-        try:
-            region = tactile_region(image, roi["tactile_box"])
-        except ValueError as exc:
-            raise ValueError(f"{path}: {exc}") from exc
-    else:
-        region = Box(0, 0, image.shape[1], image.shape[0])
-    if reason := _too_small(region, roi):
+    try:
+        boxes, tiles, reason = image_tiles(image, modality, roi)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from exc
+    if reason:
         return reason
     folder = tiles_dir / modality / cls
     if folder not in made:  # one mkdir per folder, not per image (a race only repeats a harmless mkdir)
@@ -103,11 +66,6 @@ def _tile_one(args) -> list[tuple] | str:
         made.add(folder)
     out = []
     stem = Path(path).stem
-    boxes = crop_boxes(region, roi["visual_crop"], roi["crop_fraction"])
-    if clean:  # inpaints only around the boxes, at the tiles' resolution: same tiles as cleaning the frame, nearly
-        tiles = cut_tiles_without_markers(image, boxes, roi["size"])
-    else:
-        tiles = [cut_tile(image, box, roi["size"]) for box in boxes]
     for k, (box, tile) in enumerate(zip(boxes, tiles)):
         name = f"{index:06d}_{stem}_{k}.png"
         write_png(folder / name, tile)
