@@ -10,13 +10,15 @@ import pytest
 import torch
 from PIL import Image
 
-from conftest import TINY_MODEL, tiny_params, write_image
+from conftest import REPO, TINY_MODEL, tiny_params, write_image
 from conftest import pair_tables
 from vtgen.cli import main
 from vtgen.io.checkpoints import load_translator
 from vtgen.stages.generate import run_generate, select_inputs, translate, translate_files
 from vtgen.core.models import UNetGenerator
-from vtgen.io.checkpoints import save_generator
+from vtgen.io.checkpoints import input_preparation, save_generator
+from vtgen.io.images import read_tiles
+from vtgen.core.roi import Box, cut_tile
 
 SETTINGS = dict(TINY_MODEL, gan_loss="bce", l1_weight=100.0, optimizer="adam", lr=0.0002, betas=[0.5, 0.999],
                 noise=True)
@@ -85,9 +87,7 @@ def test_translate_files_translates_a_folder(tmp_path, model_dir):
 
 @pytest.mark.parametrize("name, array, message", [
     ("small.png", np.zeros((16, 16, 3), np.uint8), "image is 16x16, the model needs 32x32"),
-    ("grey.png", np.zeros((32, 32), np.uint8), "image mode is L"),
-    ("alpha.png", np.zeros((32, 32, 4), np.uint8), "image mode is RGBA"),
-    ("deep.png", np.zeros((32, 32), np.uint16), "image mode is I;16"),
+    ("text.png", None, "not a decodable image"),
     ("range.npy", np.full((32, 32, 3), 2.0), r"float values must lie in \[0, 1\]"),
     ("nan.npy", np.full((32, 32, 3), np.nan), "NaN or infinite"),
     ("ints.npy", np.zeros((32, 32, 3), np.int64), "unsupported array type int64"),
@@ -95,7 +95,9 @@ def test_translate_files_translates_a_folder(tmp_path, model_dir):
 ])
 def test_translate_refuses_bad_images_with_a_clear_message(tmp_path, model_dir, capsys, name, array, message):
     path = tmp_path / name
-    if name.endswith(".npy"):
+    if array is None:
+        path.write_text("not an image")
+    elif name.endswith(".npy"):
         np.save(path, array)
     else:
         write_image(path, array)
@@ -121,3 +123,175 @@ def test_translate_refuses_missing_inputs_wrong_direction_and_non_models(tmp_pat
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
     assert main(["translate", str(tmp_path / "ok.png"), "--model", str(tmp_path / "junk.pt"), "--out", str(tmp_path)]) == 2
     assert "not a vtgen generator checkpoint" in capsys.readouterr().err
+
+
+
+VT60_TOUCH = REPO.parent / "shared/data/vt60_subset/touch"
+ROI = dict(size=32, tactile_box="full", remove_markers=False, visual_crop="centre", crop_fraction=0.5)
+
+
+def prepared_model(folder, roi=ROI, direction="t2v", grey=True, model_size=32):
+    """A tiny generator saved with a recorded preparation, trained (nominally) on greyscale or colour tiles."""
+    torch.manual_seed(0)
+    tiles = torch.randint(0, 256, (4, 1 if grey else 3, model_size, model_size), dtype=torch.uint8).expand(4, 3, -1, -1)
+    preparation = input_preparation(roi, direction, model_size, tiles)
+    folder.mkdir(parents=True)
+    save_generator(folder / "generator.pt", UNetGenerator(model_size, 8, 4), dict(SETTINGS, size=model_size), direction,
+                   "all", preparation)
+    return folder
+
+
+def grey_frame(tmp_path, name="frame.png"):
+    """A raw 640x480 greyscale touch frame: a real VT60 one when the shared data is there, else synthetic."""
+    real = sorted(VT60_TOUCH.rglob("*.jpg"))
+    if real:
+        return real[0], np.asarray(Image.open(real[0]))
+    rng = np.random.default_rng(3)
+    frame = rng.integers(0, 256, (480, 640), dtype=np.uint8)
+    return write_image(tmp_path / name, frame), frame
+
+
+def test_model_file_records_its_input_preparation(tmp_path):
+    model = prepared_model(tmp_path / "m")
+    _, meta = load_translator(model)
+    prep = meta["preparation"]
+    assert prep["input_modality"] == "tactile" and prep["roi"] == ROI and prep["model_size"] == 32
+    assert prep["input_channels"] == 1 and "R = G = B in all 4" in prep["input_channels_from"]
+    assert meta["note"] == ""
+    _, colour = load_translator(prepared_model(tmp_path / "c", direction="v2t", grey=False))
+    assert colour["preparation"]["input_channels"] == 3 and colour["preparation"]["input_modality"] == "visual"
+    unknown = input_preparation(dict(ROI, tactile_box=(1, 2, 30, 40)), "v2t", 32)
+    assert unknown["input_channels"] == 3 and unknown["input_channels_from"].startswith("unknown")
+    assert unknown["roi"]["tactile_box"] == [1, 2, 30, 40]
+    saved = torch.load(model / "generator.pt", weights_only=False)
+    torch.save({**saved, "preparation": {"roi": {}}}, tmp_path / "damaged.pt")
+    with pytest.raises(ValueError, match="recorded input preparation is damaged"):
+        load_translator(tmp_path / "damaged.pt")
+
+
+def test_translate_prepares_a_raw_greyscale_frame_with_the_recorded_roi(tmp_path, capsys):
+    model = prepared_model(tmp_path / "m")
+    frame_path, frame = grey_frame(tmp_path)
+    assert frame.shape == (480, 640)
+    code = main(["translate", str(frame_path), "--model", str(model), "--out", str(tmp_path / "out")])
+    out = capsys.readouterr().out
+    assert code == 0
+    written = tmp_path / "out" / f"{frame_path.stem}.png"
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [written.name]
+    image = np.asarray(Image.open(written))
+    assert image.shape == (32, 32, 3) and image.dtype == np.uint8
+    # the recorded rule, by hand: full frame, centred square of half the shorter side, cut at 32 px
+    tile = cut_tile(np.repeat(frame[:, :, None], 3, axis=2), Box(200, 120, 240, 240), 32)
+    generator, _ = load_translator(model)
+    expected = translate(generator, torch.from_numpy(tile).permute(2, 0, 1)[None])[0].permute(1, 2, 0).numpy()
+    assert np.array_equal(image, expected)
+    assert "1 images -> 1 tiles of 32 px" in out and "tactile ROI rule" in out
+    assert "grayscale (L) replicated to RGB" in out  # read_rgb8's note, reported once per kind
+
+
+def test_translate_resizes_roi_tiles_to_the_model_size_as_training_did(tmp_path):
+    model = prepared_model(tmp_path / "m", roi=dict(ROI, size=64))
+    frame = np.random.default_rng(4).integers(0, 256, (120, 160), dtype=np.uint8)
+    path = write_image(tmp_path / "in" / "f.png", frame)
+    written = translate_files(model, [path], tmp_path / "out")
+    tile = cut_tile(np.repeat(frame[:, :, None], 3, axis=2), Box(50, 30, 60, 60), 64)
+    write_image(tmp_path / "tile.png", tile)
+    generator, _ = load_translator(model)
+    expected = translate(generator, read_tiles(["tile.png"], 32, tmp_path))[0].permute(1, 2, 0).numpy()
+    assert np.array_equal(np.asarray(Image.open(written[0])), expected)
+
+
+def test_translate_gives_colour_to_a_greyscale_model_as_grey_and_cuts_several_tiles(tmp_path, capsys):
+    model = prepared_model(tmp_path / "m", roi=dict(ROI, visual_crop="tiles", crop_fraction=0.5))
+    rng = np.random.default_rng(5)
+    write_image(tmp_path / "in" / "photo.png", rng.integers(0, 256, (64, 128, 3), dtype=np.uint8))
+    written = translate_files(model, [tmp_path / "in"], tmp_path / "out")
+    assert [p.name for p in written] == [f"photo_{k}.png" for k in range(8)]  # a 4 x 2 grid of 32 px squares
+    assert "colour converted to greyscale" in capsys.readouterr().out
+
+
+def test_translate_keeps_relative_paths_and_refuses_collisions(tmp_path, capsys):
+    model = prepared_model(tmp_path / "m")
+    rng = np.random.default_rng(6)
+    for sub in ("a", "b/deeper"):
+        write_image(tmp_path / "in" / sub / "x.png", rng.integers(0, 256, (48, 64), dtype=np.uint8))
+    written = translate_files(model, [tmp_path / "in"], tmp_path / "out")
+    assert written == [tmp_path / "out/a/x.png", tmp_path / "out/b/deeper/x.png"]
+    assert not np.array_equal(*(np.asarray(Image.open(p)) for p in written))  # two outputs, none lost
+    a, b = tmp_path / "in/a/x.png", tmp_path / "in/b/deeper/x.png"
+    code = main(["translate", str(a), str(b), "--model", str(model), "--out", str(tmp_path / "o1")])
+    err = capsys.readouterr().err
+    assert code == 2 and str(a) in err and str(b) in err and "would overwrite" in err
+    assert not (tmp_path / "o1").exists()
+    write_image(tmp_path / "in/a/x.jpg", rng.integers(0, 256, (48, 64), dtype=np.uint8))  # x.png and x.jpg: one x.png
+    code = main(["translate", str(tmp_path / "in"), "--model", str(model), "--out", str(tmp_path / "o2")])
+    err = capsys.readouterr().err
+    assert code == 2 and "in/a/x.jpg" in err and "in/a/x.png" in err
+    assert not (tmp_path / "o2").exists()
+
+
+def test_translate_names_every_bad_file_at_once_and_writes_nothing(tmp_path, capsys):
+    model = prepared_model(tmp_path / "m")
+    rng = np.random.default_rng(7)
+    folder = tmp_path / "in"
+    write_image(folder / "good.png", rng.integers(0, 256, (48, 64), dtype=np.uint8))
+    (folder / "notes.png").write_text("not an image at all")
+    cut = write_image(folder / "sub" / "cut.jpg", rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))
+    cut.write_bytes(cut.read_bytes()[: cut.stat().st_size // 2])
+    write_image(folder / "tiny.png", np.zeros((1, 1), np.uint8))  # half of 1 px: no crop
+    code = main(["translate", str(folder), "--model", str(model), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert lines[0] == "vtgen translate: error: 3 problems in 4 inputs; nothing translated:"
+    reasons = dict(line.strip().split(": ", 1) for line in lines[1:])
+    assert set(reasons) == {str(folder / "notes.png"), str(folder / "sub/cut.jpg"), str(folder / "tiny.png")}
+    assert "not a decodable image" in reasons[str(folder / "notes.png")]
+    assert "truncated" in reasons[str(folder / "sub/cut.jpg")]
+    assert "too small" in reasons[str(folder / "tiny.png")]
+    assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out*"))  # no output, no staging left
+
+
+def test_translate_with_an_old_model_file_needs_tiles_of_its_size(tmp_path, capsys):
+    record = {"state_dict": UNetGenerator(32, 8, 4).state_dict(), "settings": SETTINGS, "direction": "t2v",
+              "scope": "all", "input_modality": "tactile", "output_modality": "visual"}  # as written before preparation
+    torch.save(record, tmp_path / "old.pt")
+    _, meta = load_translator(tmp_path / "old.pt")
+    assert meta["preparation"] is None and "no input preparation recorded" in meta["note"]
+    rng = np.random.default_rng(8)
+    write_image(tmp_path / "in/tile.png", rng.integers(0, 256, (32, 32, 3), dtype=np.uint8))
+    written = translate_files(tmp_path / "old.pt", [tmp_path / "in"], tmp_path / "out")
+    assert [p.name for p in written] == ["tile.png"]
+    assert "no input preparation recorded" in capsys.readouterr().out
+    frame_path, _ = grey_frame(tmp_path)
+    code = main(["translate", str(frame_path), "--model", str(tmp_path / "old.pt"), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 2 and "image is 640x480, the model needs 32x32" in err and str(frame_path) in err
+
+
+def test_translate_as_tiles_skips_the_roi_rule(tmp_path):
+    model = prepared_model(tmp_path / "m")
+    tile = np.random.default_rng(9).integers(0, 256, (64, 64), dtype=np.uint8)
+    path = write_image(tmp_path / "t.png", tile)
+    written = translate_files(model, [path], tmp_path / "out", as_tiles=True)
+    write_image(tmp_path / "rgb.png", np.repeat(tile[:, :, None], 3, axis=2))
+    generator, _ = load_translator(model)
+    expected = translate(generator, read_tiles(["rgb.png"], 32, tmp_path))[0].permute(1, 2, 0).numpy()
+    assert np.array_equal(np.asarray(Image.open(written[0])), expected)
+
+
+@pytest.mark.slow
+def test_run_train_records_the_preparation_of_its_training_data(tmp_path, monkeypatch):
+    from vtgen.stages.train import run_train
+
+    monkeypatch.chdir(tmp_path)
+    pairs, splits = pair_tables(tmp_path)
+    (tmp_path / "pairs").mkdir()
+    pairs.to_parquet("pairs/v2t.parquet")
+    splits.to_parquet("pairs/splits.parquet")
+    params = tiny_params()
+    run_train(params, "v2t", "all", "pairs", "models/v2t/all", "ckpt", progress=False)
+    _, meta = load_translator("models/v2t/all")
+    prep = meta["preparation"]
+    assert prep["roi"] == {k: params["roi"][k] for k in ROI} and prep["input_modality"] == "visual"
+    assert prep["model_size"] == 32 and prep["input_channels"] == 3  # pair_tables' tiles are random colour

@@ -68,7 +68,7 @@ def _translate(args, params) -> None:
     from vtgen.stages.generate import translate_files
 
     translate_files(args.model, args.inputs, args.out, params["translation"]["device"] if params else "cpu",
-                    args.direction)
+                    args.direction, as_tiles=args.tiles)
 
 
 def _score(args, params) -> None:
@@ -204,10 +204,18 @@ def build_parser() -> argparse.ArgumentParser:
     experiments.add_argument("--params", default="params.yaml")
     experiments.add_argument("--queue", action="store_true", help="run `dvc exp run --queue` for each")
     experiments.set_defaults(func=_experiments)
-    translate = sub.add_parser("translate", help="translate your own images or folders with a trained model")
-    translate.add_argument("inputs", nargs="+", help="images (PNG, JPEG, ... or .npy) or folders of them")
+    translate = sub.add_parser("translate", help="translate your own images or folders with a trained model",
+                               description="Prepare each image as the model's training inputs were (the ROI rule "
+                               "recorded in the model file), translate every tile, and write PNGs that keep each "
+                               "input's path relative to its folder argument. All or nothing: one error lists every "
+                               "input that cannot be prepared, and nothing is written.")
+    translate.add_argument("inputs", nargs="+", help="raw frames or tiles (PNG, JPEG, BMP, TIFF, WebP or .npy), "
+                           "or folders of them (searched recursively)")
     translate.add_argument("--model", required=True, help="a trained model folder (models/<direction>/<scope>) or its generator.pt")
-    translate.add_argument("--out", required=True, help="folder for the translated PNGs")
+    translate.add_argument("--out", required=True, help="folder for the translated PNGs (<name>.png, or <name>_<k>.png "
+                           "for an image that gives several tiles)")
+    translate.add_argument("--tiles", action="store_true", help="inputs are already ROI tiles: skip the ROI rule, "
+                           "only resize them to the model size")
     translate.add_argument("--direction", choices=list(DIRECTIONS), help="refuse a model of the other direction")
     translate.add_argument("--params", default=None, help="params file for translation.device (default: CPU)")
     translate.set_defaults(func=_translate)

@@ -28,15 +28,74 @@ def save_atomic(obj, path: Path) -> None:
     os.replace(tmp, path)
 
 
-def save_generator(path: Path, generator: UNetGenerator, settings: dict, direction: str, scope: str) -> None:
-    """The file `vtgen generate` and `vtgen translate` load: weights plus what is needed to rebuild the network."""
+ROI_KEYS = ("size", "tactile_box", "remove_markers", "visual_crop", "crop_fraction")
+"""The params.yaml ``roi`` keys a model file records: the rule that cut its training tiles."""
+
+
+def input_channels(*batches: torch.Tensor) -> tuple[int, str]:
+    """(1 or 3, how it was decided) for uint8 N x 3 x S x S input tiles.
+
+    The roi stage writes every tile as RGB, replicating a greyscale source to three equal
+    channels; so the sources were greyscale (1) when every tile has R = G = B, colour (3)
+    otherwise. With no tiles the answer is unknown and 3 is returned, saying so.
+    """
+    count = sum(len(b) for b in batches)
+    if count == 0:
+        return 3, "unknown (no input tiles); 3 recorded"
+    grey = all(bool(torch.equal(b[:, 0], b[:, 1]) and torch.equal(b[:, 1], b[:, 2])) for b in batches if len(b))
+    return (1, f"R = G = B in all {count} input tiles") if grey else (3, f"colour in the {count} input tiles")
+
+
+def input_preparation(roi: Mapping, direction: str, model_size: int, *input_tiles: torch.Tensor) -> dict:
+    """What `vtgen translate` must do to a raw image before this model sees it.
+
+    ``input_modality`` (the direction's source), ``roi`` (the ROI rule that cut the training
+    tiles, ``ROI_KEYS`` of params.yaml's ``roi`` section), ``model_size`` (tiles of ``roi.size``
+    are resized to it) and ``input_channels`` (1: greyscale sources, 3: colour; see
+    :func:`input_channels`) with ``input_channels_from``.
+    """
+    missing = [k for k in ROI_KEYS if k not in roi]
+    if missing:
+        raise ValueError(f"roi section lacks {', '.join(missing)}")
+    rule = {k: roi[k] for k in ROI_KEYS}
+    if not isinstance(rule["tactile_box"], str):
+        rule["tactile_box"] = [int(v) for v in rule["tactile_box"]]
+    channels, how = input_channels(*input_tiles)
+    return {"input_modality": DIRECTIONS[direction][0], "roi": rule, "model_size": int(model_size),
+            "input_channels": channels, "input_channels_from": how}
+
+
+def save_generator(path: Path, generator: UNetGenerator, settings: dict, direction: str, scope: str,
+                   preparation: dict | None = None) -> None:
+    """The file `vtgen generate` and `vtgen translate` load: weights plus what is needed to rebuild the network,
+    and (from :func:`input_preparation`) how a raw image becomes this model's input."""
     source_mod, target_mod = DIRECTIONS[direction]
-    save_atomic({"state_dict": generator.state_dict(), "settings": settings, "direction": direction, "scope": scope,
-                  "input_modality": source_mod, "output_modality": target_mod}, path)
+    record = {"state_dict": generator.state_dict(), "settings": settings, "direction": direction, "scope": scope,
+              "input_modality": source_mod, "output_modality": target_mod}
+    if preparation is not None:
+        record["preparation"] = preparation
+    save_atomic(record, path)
+
+
+def _checked_preparation(saved: dict, size: int, path: Path) -> dict | None:
+    preparation = saved.get("preparation")
+    if preparation is None:
+        return None
+    roi = preparation.get("roi") if isinstance(preparation, dict) else None
+    if (not isinstance(roi, dict) or any(k not in roi for k in ROI_KEYS)
+            or preparation.get("input_channels") not in (1, 3) or preparation.get("model_size") != size
+            or preparation.get("input_modality") != saved["input_modality"]):
+        raise ValueError(f"{path}: its recorded input preparation is damaged ({preparation!r}); retrain the model")
+    return preparation
 
 
 def load_translator(model: str | Path, device: str = "cpu") -> tuple[UNetGenerator, dict]:
-    """Load a generator written by the train stage (its folder or its generator.pt), in eval mode."""
+    """Load a generator written by the train stage (its folder or its generator.pt), in eval mode.
+
+    The record holds direction, scope, input_modality, output_modality, size, path and
+    ``preparation`` (see :func:`input_preparation`), which is None for model files written before
+    it was recorded; ``note`` then says so (and is "" otherwise).
+    """
     path = Path(model)
     if path.is_dir():
         path = path / "generator.pt"
@@ -47,10 +106,14 @@ def load_translator(model: str | Path, device: str = "cpu") -> tuple[UNetGenerat
         settings = saved["settings"]
         generator = UNetGenerator(settings["size"], settings["ngf"], settings["kernel"])
         generator.load_state_dict(saved["state_dict"])
+        meta = {k: saved[k] for k in ("direction", "scope", "input_modality", "output_modality")}
     except (KeyError, TypeError, RuntimeError, EOFError, OSError, pickle.UnpicklingError) as exc:
         raise ValueError(f"{path}: not a vtgen generator checkpoint ({exc})") from exc
-    meta = {k: saved[k] for k in ("direction", "scope", "input_modality", "output_modality")}
     meta["size"], meta["path"] = settings["size"], str(path)
+    meta["preparation"] = _checked_preparation(saved, settings["size"], path)
+    meta["note"] = "" if meta["preparation"] else (
+        f"{path}: no input preparation recorded (a model file from before it was); inputs must be "
+        f"{settings['size']}x{settings['size']} tiles cut like its training tiles")
     return generator.to(resolve_device(device)).eval(), meta
 
 

@@ -9,16 +9,20 @@ aligned view, its ground truth. ``translate_files`` serves any image or folder a
 from __future__ import annotations
 
 import json
+import os
+import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pandas as pd
 import torch
+import torch.nn.functional as F
 from PIL import Image
 from tqdm import tqdm
 
 from vtgen.core.gan import to_model_range, to_uint8
-from vtgen.io.images import atomic_output_dir, labelled_sheet, write_png
+from vtgen.io.images import atomic_output_dir, display_path, labelled_sheet, read_rgb8, stream_map, write_png
 from vtgen.io.tables import read_table
 from vtgen.core.models import UNetGenerator
 from vtgen.core.domain import DIRECTIONS
@@ -27,7 +31,9 @@ from vtgen.io.images import read_tiles
 from vtgen.io.tables import GENERATED_COLUMNS
 from vtgen.io.checkpoints import load_translator
 
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".npy"}
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".npy"}
+
+
 @torch.no_grad()
 def translate(generator: UNetGenerator, images: torch.Tensor, batch_size: int = 32) -> torch.Tensor:
     """uint8 N x 3 x S x S -> uint8 N x 3 x S x S through ``generator`` (eval mode, no dropout)."""
@@ -71,6 +77,14 @@ def comparison_sheet(rows: pd.DataFrame, image_root: Path, per_class: int = 4) -
     return labelled_sheet(sheet_rows, ["input", "generated", "ground truth"], per_class)
 
 
+def _training_status(model_dir: Path) -> str:
+    """The train stage's status of one model folder ("ok" when it holds a model)."""
+    record = model_dir / "train.json"
+    if not (model_dir / "generator.pt").is_file() and record.is_file():
+        return json.loads(record.read_text()).get("status", "ok")
+    return "ok"
+
+
 def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir: str | Path, out_dir: str | Path,
                  progress: bool = True) -> dict:
     """Stage entry: translate with ``models_dir/<scope>/generator.pt`` for every translation.scope entry.
@@ -86,6 +100,10 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
     tables, summary = [], {"direction": direction, "scopes": {}}
     with atomic_output_dir(out_dir) as tmp:
         for scope in params["translation"]["scope"]:
+            status = _training_status(models_dir / scope)
+            if status.startswith("not applicable"):
+                summary["scopes"][scope] = {"status": status, "train": 0, "test": 0, "with_ground_truth": 0}
+                continue
             generator, meta = load_translator(models_dir / scope, params["translation"]["device"])
             if meta["direction"] != direction:
                 raise ValueError(f"{meta['path']}: model translates {meta['direction']}, not {direction}")
@@ -104,9 +122,10 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
             tables.append(rows)
             summary["scopes"][scope] = {s: int((rows["split"] == s).sum()) for s in ("train", "test")}
             summary["scopes"][scope]["with_ground_truth"] = int((rows["ground_truth_path"] != "").sum())
-        table = pd.concat(tables, ignore_index=True)
+        table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame(columns=GENERATED_COLUMNS)
         table[GENERATED_COLUMNS].to_parquet(tmp / "generated.parquet", index=False)
-        write_png(tmp / "preview.png", comparison_sheet(table[table["split"] == "test"], tmp))
+        if tables:
+            write_png(tmp / "preview.png", comparison_sheet(table[table["split"] == "test"], tmp))
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     for scope, counts in summary["scopes"].items():
         print(f"generate {direction}/{scope}: {counts['test']} test and {counts['train']} training inputs translated "
@@ -114,67 +133,213 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
     return summary
 
 
-def _read_user_image(path: Path, size: int) -> np.ndarray:
-    """A user's image as (size, size, 3) uint8, or a ValueError that says what is wrong with it."""
-    if path.suffix.lower() == ".npy":
+def _read_user_image(path: Path) -> tuple[np.ndarray, str]:
+    """A user's image as ((H, W, 3) uint8, conversion note), or ImageError/ValueError
+    saying what is wrong. Images go through :func:`read_rgb8` (greyscale, 16-bit, palette and alpha are
+    converted, with a note); ``.npy`` arrays must be H x W x 3, uint8 or float in [0, 1]."""
+    if path.suffix.lower() != ".npy":
+        decoded = read_rgb8(path)
+        return decoded.rgb, decoded.note
+    try:
         array = np.load(path, allow_pickle=False)
-        if array.ndim != 3 or array.shape[2] != 3:
-            raise ValueError(f"{path}: expected an H x W x 3 array, got shape {array.shape}")
-        if array.dtype == np.uint8:
-            pass
-        elif np.issubdtype(array.dtype, np.floating):
-            if not np.isfinite(array).all():
-                raise ValueError(f"{path}: array holds NaN or infinite values")
-            if array.min() < 0 or array.max() > 1:
-                raise ValueError(f"{path}: float values must lie in [0, 1], got [{array.min():.4g}, {array.max():.4g}]")
-            array = np.round(array * 255).astype(np.uint8)
+    except (OSError, ValueError, EOFError) as exc:
+        raise ValueError(f"cannot read as a numpy array ({exc})") from exc
+    if array.ndim != 3 or array.shape[2] != 3:
+        raise ValueError(f"expected an H x W x 3 array, got shape {array.shape}")
+    if array.dtype == np.uint8:
+        return array, ""
+    if np.issubdtype(array.dtype, np.floating):
+        if not np.isfinite(array).all():
+            raise ValueError("array holds NaN or infinite values")
+        if array.min() < 0 or array.max() > 1:
+            raise ValueError(f"float values must lie in [0, 1], got [{array.min():.4g}, {array.max():.4g}]")
+        return np.round(array * 255).astype(np.uint8), ""
+    raise ValueError(f"unsupported array type {array.dtype} (use uint8 in [0, 255] or float in [0, 1])")
+
+
+def _resize_tiles(tiles: list[np.ndarray], size: int) -> list[np.ndarray]:
+    """Square RGB tiles to ``size`` x ``size`` exactly as the train stage's tile reader resizes them
+    (area when shrinking, bilinear when enlarging)."""
+    out = []
+    for tile in tiles:
+        if tile.shape[:2] != (size, size):
+            batch = torch.from_numpy(np.ascontiguousarray(tile)).permute(2, 0, 1)[None].float()
+            shrink = tile.shape[0] > size
+            batch = F.interpolate(batch, size=(size, size), mode="area" if shrink else "bilinear",
+                                  align_corners=None if shrink else False)
+            tile = batch.round().clamp(0, 255).to(torch.uint8)[0].permute(1, 2, 0).numpy()
+        out.append(tile)
+    return out
+
+
+def prepare_input(image: np.ndarray, meta: dict, as_tiles: bool = False) -> tuple[list[np.ndarray], list[str]]:
+    """The model inputs (uint8 size x size x 3 tiles) cut from one user image, and notes on what was done.
+
+    With a recorded preparation (``meta["preparation"]``): the image is brought to the training
+    inputs' channels (colour -> greyscale for a model trained on greyscale sources, with a note;
+    greyscale given to a colour model is noted), then the recorded ROI rule cuts its tiles (skipped
+    with ``as_tiles``), which are resized to the model size. Without one (older model files), the
+    image must already be a tile of the model size. Raises ValueError saying why the image cannot
+    be prepared (it gives no tile, or has the wrong size).
+    """
+    size, preparation, notes = meta["size"], meta["preparation"], []
+    if preparation is None:
+        if image.shape[:2] != (size, size):
+            raise ValueError(f"image is {image.shape[1]}x{image.shape[0]}, the model needs {size}x{size} "
+                             f"(cut tiles with the roi stage or resize first; this model file records no "
+                             f"input preparation)")
+        return [image], notes
+    is_grey = bool((image[..., 0] == image[..., 1]).all() and (image[..., 1] == image[..., 2]).all())
+    if preparation["input_channels"] == 1 and not is_grey:
+        image = np.repeat(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)[:, :, None], 3, axis=2)
+        notes.append("colour converted to greyscale (the model was trained on greyscale inputs)")
+    elif preparation["input_channels"] == 3 and is_grey:
+        notes.append("greyscale input to a model trained on colour inputs")
+    if as_tiles:
+        if image.shape[0] != image.shape[1]:
+            raise ValueError(f"image is {image.shape[1]}x{image.shape[0]}: a tile must be square")
+        return _resize_tiles([image], size), notes
+    # ---- the one call into the ROI rule (vtgen.core.roi.image_tiles, the rule the roi stage applies) ----
+    from vtgen.core.roi import image_tiles
+
+    _, tiles, reason = image_tiles(image, preparation["input_modality"], preparation["roi"])
+    if reason:
+        raise ValueError(reason)
+    return _resize_tiles(tiles, size), notes
+
+
+def collect_inputs(inputs: list[str | Path], out_dir: Path) -> list[tuple[Path, Path]]:
+    """(file, relative output stem) for every input: a file argument gives its own name, a folder
+    argument every image under it (recursively, ``IMAGE_SUFFIXES``, skipping ``out_dir`` if it lies
+    inside) at its path relative to that folder. FileNotFoundError/ValueError for a missing input or
+    a folder without images."""
+    out_resolved = out_dir.resolve()
+    found: list[tuple[Path, Path]] = []
+    for item in map(Path, inputs):
+        if item.is_dir():
+            files = sorted(p for p in item.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()
+                           and not p.resolve().is_relative_to(out_resolved))
+            if not files:
+                raise ValueError(f"{item}: no images ({', '.join(sorted(IMAGE_SUFFIXES))}) in this folder or below")
+            found.extend((p, p.relative_to(item).with_suffix("")) for p in files)
+        elif item.is_file():
+            found.append((item, Path(item.stem)))
         else:
-            raise ValueError(f"{path}: unsupported array type {array.dtype} (use uint8 in [0, 255] or float in [0, 1])")
-    else:
-        try:
-            with Image.open(path) as image:
-                image.load()
-                if image.mode != "RGB":
-                    raise ValueError(f"{path}: image mode is {image.mode}; the model needs 8-bit RGB "
-                                     f"(convert it, e.g. PIL's Image.convert('RGB'))")
-                array = np.asarray(image)
-        except (OSError, Image.DecompressionBombError) as exc:
-            raise ValueError(f"{path}: cannot read as an image ({exc})") from exc
-    if array.shape[:2] != (size, size):
-        raise ValueError(f"{path}: image is {array.shape[1]}x{array.shape[0]}, the model needs {size}x{size} "
-                         f"(cut tiles with the roi stage or resize first)")
-    return array
+            raise FileNotFoundError(f"{item}: no such file or folder")
+    return list(dict.fromkeys(found))  # the same file named twice the same way is translated once
+
+
+def _output_collisions(found: list[tuple[Path, Path]], out_dir: Path) -> list[tuple[Path, str]]:
+    """Problems for inputs whose outputs would land on the same file (``x.png`` and ``x.jpg``, or two
+    file arguments of one name), each naming the other input."""
+    first: dict[Path, Path] = {}
+    problems = []
+    for path, stem in found:
+        if stem in first:
+            problems.append((path, f"its output {out_dir / stem}.png would overwrite that of {first[stem]}"))
+        else:
+            first[stem] = path
+    return problems
+
+
+def _refusal(problems: list[tuple[Path, str]], total: int) -> ValueError:
+    if total == 1 and len(problems) == 1:
+        return ValueError(f"{display_path(problems[0][0])}: {problems[0][1]}")
+    lines = "\n".join(f"  {display_path(path)}: {reason}" for path, reason in problems)
+    return ValueError(f"{len(problems)} problems in {total} inputs; nothing translated:\n{lines}")
 
 
 def translate_files(model: str | Path, inputs: list[str | Path], out_dir: str | Path, device: str = "cpu",
-                    direction: str | None = None) -> list[Path]:
-    """Translate user images (files or folders of them) and write ``<out_dir>/<name>.png`` for each.
+                    direction: str | None = None, as_tiles: bool = False, progress: bool | None = None,
+                    batch_size: int = 32) -> list[Path]:
+    """Translate user images (files, or folders searched recursively) and return the PNGs written.
 
-    Every image is checked before any is translated: it must be 8-bit RGB (or an .npy array,
-    uint8 or float in [0, 1]) of the model's size. ``direction``, when given, must match the model.
+    Each image is prepared as the model's training inputs were (:func:`prepare_input`: the ROI rule
+    recorded in the model file cuts its tiles; older model files need tiles of the model size).
+    Outputs keep the input's path relative to its folder argument (a file argument: its name):
+    ``<out_dir>/<rel>.png``, or ``<rel>_<k>.png`` for an image that gives several tiles.
+    All or nothing: every input is read and prepared; when any cannot be, or two outputs would
+    share a file, one ValueError lists every such input with its reason and nothing is written.
+    Outputs are staged beside ``out_dir`` and moved in only when every input succeeded.
+    ``direction``, when given, must match the model. ``progress`` (default: for 20 inputs or more)
+    shows a progress bar on stderr.
     """
     generator, meta = load_translator(model, device)
     if direction and direction != meta["direction"]:
         raise ValueError(f"{meta['path']}: model translates {meta['direction']}, not {direction}")
-    files: list[Path] = []
-    for item in map(Path, inputs):
-        if item.is_dir():
-            found = sorted(p for p in item.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
-            if not found:
-                raise ValueError(f"{item}: no images ({', '.join(sorted(IMAGE_SUFFIXES))}) in this folder")
-            files.extend(found)
-        elif item.is_file():
-            files.append(item)
-        else:
-            raise FileNotFoundError(f"{item}: no such file or folder")
-    arrays = [_read_user_image(p, meta["size"]) for p in files]
-    outputs = translate(generator, torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous())
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    written = []
-    for path, image in zip(files, outputs):
-        target = out_dir / f"{path.stem}.png"
-        write_png(target, image.permute(1, 2, 0).numpy())
-        written.append(target)
-    print(f"translate ({meta['direction']}): {len(written)} images -> {out_dir}")
-    return written
+    found = collect_inputs(inputs, out_dir)
+    problems = _output_collisions(found, out_dir)
+    collided = {path for path, _ in problems}
+    if meta["note"]:
+        print(f"translate: note: {meta['note']}")
+    staging = out_dir.parent / f".{out_dir.name}.translate-{os.getpid()}.tmp"
+    shutil.rmtree(staging, ignore_errors=True)
+    owner: dict[Path, Path] = {}  # output name (relative) -> input, to catch x_0.png meeting a file named x_0
+    notes: dict[str, list[Path]] = {}
+    pending: list[tuple[Path, np.ndarray]] = []
+    written: list[Path] = []
+    frames = 0
+
+    def prepare(item: tuple[Path, Path]):
+        path, stem = item
+        try:
+            image, note = _read_user_image(path)
+            tiles, extra = prepare_input(image, meta, as_tiles)
+        except (ValueError, cv2.error) as exc:  # ImageError is a ValueError
+            return path, stem, None, str(exc)
+        return path, stem, tiles, "; ".join(n for n in [note, *extra] if n)
+
+    def flush() -> None:
+        if pending and not problems:
+            batch = torch.from_numpy(np.stack([tile for _, tile in pending])).permute(0, 3, 1, 2).contiguous()
+            for (name, _), image in zip(pending, translate(generator, batch, batch_size)):
+                (staging / name).parent.mkdir(parents=True, exist_ok=True)
+                write_png(staging / name, image.permute(1, 2, 0).numpy())
+                written.append(name)
+        pending.clear()
+
+    show = len(found) >= 20 if progress is None else progress
+    try:
+        for path, stem, tiles, text in stream_map(prepare, found, workers=2, total=len(found), desc="translate",
+                                                  progress=show):
+            if tiles is None:
+                problems.append((path, text))
+                continue
+            if text:
+                notes.setdefault(text, []).append(path)
+            names = ([stem.with_name(f"{stem.name}.png")] if len(tiles) == 1
+                     else [stem.with_name(f"{stem.name}_{k}.png") for k in range(len(tiles))])
+            clashes = [name for name in names if name in owner and owner[name] != path]
+            if clashes and path not in collided:
+                problems.append((path, f"its output {out_dir / clashes[0]} would overwrite that of {owner[clashes[0]]}"))
+            owner.update({name: path for name in names})
+            frames += 1
+            pending.extend(zip(names, tiles))
+            if len(pending) >= batch_size:
+                flush()
+        if problems:
+            raise _refusal(problems, len(found))
+        flush()
+        out_dir.mkdir(parents=True, exist_ok=True)
+        for name in written:
+            (out_dir / name).parent.mkdir(parents=True, exist_ok=True)
+            os.replace(staging / name, out_dir / name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    for text, paths in sorted(notes.items()):
+        print(f"translate: note: {len(paths)} input{'s' if len(paths) > 1 else ''} ({display_path(paths[0])}"
+              f"{', ...' if len(paths) > 1 else ''}): {text}")
+    prep = meta["preparation"]
+    how = ("as tiles, resized to the model size" if as_tiles else
+           f"{prep['input_modality']} ROI rule {_describe_roi(prep['roi'])}" if prep else "as tiles of the model size")
+    print(f"translate ({meta['direction']}): {frames} images -> {len(written)} tiles of {meta['size']} px "
+          f"({how}) -> {out_dir}")
+    return [out_dir / name for name in written]
+
+
+def _describe_roi(roi: dict) -> str:
+    crop = (f"centre crop {roi['crop_fraction']}" if roi["visual_crop"] == "centre"
+            else f"grid of tiles {roi['crop_fraction']}")
+    return (f"(tactile_box {roi['tactile_box']}, markers {'removed' if roi['remove_markers'] else 'kept'}, "
+            f"{crop}, {roi['size']} px)")

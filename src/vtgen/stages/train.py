@@ -39,7 +39,7 @@ from vtgen.core.domain import DIRECTIONS
 from vtgen.core.gan import random_positioning, to_model_range
 from vtgen.core.models import count_parameters, UNetGenerator
 from vtgen.core.translator import LOSS_NAMES, STATE_KEYS, TranslatorTraining
-from vtgen.io.checkpoints import save_atomic, save_generator
+from vtgen.io.checkpoints import input_preparation, save_atomic, save_generator
 from vtgen.io.images import atomic_output_dir, read_tiles
 from vtgen.io.params import model_settings
 from vtgen.io.provenance import code_fingerprint
@@ -539,7 +539,8 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
         result = train_translator(data, settings, run, direction, scope, Path(checkpoint_root) / direction / scope,
                                   on_log=log, progress=progress, validation=validation)
         live.end()
-        save_generator(tmp / "generator.pt", result.generator, settings, direction, scope)
+        preparation = input_preparation(params["roi"], direction, settings["size"], data.inputs, data.pool_images)
+        save_generator(tmp / "generator.pt", result.generator, settings, direction, scope, preparation)
         summary = _summary(result, data, validation, settings, run, direction, scope)
         (tmp / "train.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"train {direction}/{scope}: {result.steps} steps in {result.seconds:.1f} s "
