@@ -528,6 +528,8 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
     pairs_dir = Path(pairs_dir)
     pairs = read_table(pairs_dir / f"{direction}.parquet", PAIR_COLUMNS, f"a {direction} pair table")
     splits = read_table(pairs_dir / "splits.parquet", SPLIT_COLUMNS, "the split table of the pairs stage")
+    if pairs.empty:
+        return _not_applicable(pairs_dir, direction, scope, Path(out_dir))
     data = load_pair_data(pairs, splits, direction, scope, settings["size"])
     validation = (load_pair_data(pairs, splits, direction, scope, settings["size"], split="val")
                   if not pairs_in(pairs, "val", scope).empty else None)
@@ -545,4 +547,22 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
         (tmp / "train.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"train {direction}/{scope}: {result.steps} steps in {result.seconds:.1f} s "
           f"({summary['seconds_per_iteration']:.3f} s/it) -> {out_dir}")
+    return summary
+
+
+def _not_applicable(pairs_dir: Path, direction: str, scope: str, out_dir: Path) -> dict:
+    """No pairs at all for ``direction`` (e.g. a one-modality dataset): write train.json with the reason
+    and no generator.pt, so the generate stage and the report say why there is no translation."""
+    reason = "the pairs stage found no pairs for this direction"
+    summary_path = pairs_dir / "summary.json"
+    if summary_path.is_file():
+        recorded = json.loads(summary_path.read_text()).get("translation")
+        if isinstance(recorded, dict) and recorded.get("reason"):
+            reason = recorded["reason"]
+        elif isinstance(recorded, str) and recorded:
+            reason = recorded
+    summary = {"direction": direction, "scope": scope, "status": f"not applicable: {reason}"}
+    with atomic_output_dir(out_dir) as tmp:
+        (tmp / "train.json").write_text(json.dumps(summary, indent=2) + "\n")
+    print(f"train {direction}/{scope}: not applicable: {reason}; no model -> {out_dir}")
     return summary
