@@ -208,6 +208,10 @@ def test_translate_gives_colour_to_a_greyscale_model_as_grey_and_cuts_several_ti
     written = translate_files(model, [tmp_path / "in"], tmp_path / "out")
     assert [p.name for p in written] == [f"photo_{k}.png" for k in range(8)]  # a 4 x 2 grid of 32 px squares
     assert "colour converted to greyscale" in capsys.readouterr().out
+    write_image(tmp_path / "in" / "photo_0.png", np.zeros((1, 1, 3), np.uint8))  # a grid of one 1-px tile
+    with pytest.raises(ValueError, match=r"photo_0\.png: its output .*photo_0\.png would overwrite that of .*photo\.png"):
+        translate_files(model, [tmp_path / "in"], tmp_path / "out2")
+    assert not (tmp_path / "out2").exists()
 
 
 def test_translate_keeps_relative_paths_and_refuses_collisions(tmp_path, capsys):

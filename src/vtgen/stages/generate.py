@@ -25,6 +25,7 @@ from vtgen.core.gan import to_model_range, to_uint8
 from vtgen.io.images import atomic_output_dir, display_path, labelled_sheet, read_rgb8, stream_map, write_png
 from vtgen.io.tables import read_table
 from vtgen.core.models import UNetGenerator
+from vtgen.core.roi import image_tiles
 from vtgen.core.domain import DIRECTIONS
 from vtgen.io.tables import PAIR_COLUMNS, SPLIT_COLUMNS
 from vtgen.io.images import read_tiles
@@ -199,9 +200,7 @@ def prepare_input(image: np.ndarray, meta: dict, as_tiles: bool = False) -> tupl
         if image.shape[0] != image.shape[1]:
             raise ValueError(f"image is {image.shape[1]}x{image.shape[0]}: a tile must be square")
         return _resize_tiles([image], size), notes
-    # ---- the one call into the ROI rule (vtgen.core.roi.image_tiles, the rule the roi stage applies) ----
-    from vtgen.core.roi import image_tiles
-
+    # the ROI rule the roi stage applies to every dataset image (vtgen.core.roi.image_tiles)
     _, tiles, reason = image_tiles(image, preparation["input_modality"], preparation["roi"])
     if reason:
         raise ValueError(reason)
@@ -246,7 +245,8 @@ def _refusal(problems: list[tuple[Path, str]], total: int) -> ValueError:
     if total == 1 and len(problems) == 1:
         return ValueError(f"{display_path(problems[0][0])}: {problems[0][1]}")
     lines = "\n".join(f"  {display_path(path)}: {reason}" for path, reason in problems)
-    return ValueError(f"{len(problems)} problems in {total} inputs; nothing translated:\n{lines}")
+    return ValueError(f"{len(problems)} problem{'s' if len(problems) > 1 else ''} in {total} inputs; "
+                      f"nothing translated:\n{lines}")
 
 
 def translate_files(model: str | Path, inputs: list[str | Path], out_dir: str | Path, device: str = "cpu",
@@ -300,6 +300,8 @@ def translate_files(model: str | Path, inputs: list[str | Path], out_dir: str | 
         pending.clear()
 
     show = len(found) >= 20 if progress is None else progress
+    opencv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)  # two reader threads are the parallelism; OpenCV's own pool on top only adds contention
     try:
         for path, stem, tiles, text in stream_map(prepare, found, workers=2, total=len(found), desc="translate",
                                                   progress=show):
@@ -326,13 +328,14 @@ def translate_files(model: str | Path, inputs: list[str | Path], out_dir: str | 
             (out_dir / name).parent.mkdir(parents=True, exist_ok=True)
             os.replace(staging / name, out_dir / name)
     finally:
+        cv2.setNumThreads(opencv_threads)
         shutil.rmtree(staging, ignore_errors=True)
     for text, paths in sorted(notes.items()):
         print(f"translate: note: {len(paths)} input{'s' if len(paths) > 1 else ''} ({display_path(paths[0])}"
               f"{', ...' if len(paths) > 1 else ''}): {text}")
     prep = meta["preparation"]
     how = ("as tiles, resized to the model size" if as_tiles else
-           f"{prep['input_modality']} ROI rule {_describe_roi(prep['roi'])}" if prep else "as tiles of the model size")
+           f"{prep['input_modality']} ROI rule: {_describe_roi(prep['roi'])}" if prep else "as tiles of the model size")
     print(f"translate ({meta['direction']}): {frames} images -> {len(written)} tiles of {meta['size']} px "
           f"({how}) -> {out_dir}")
     return [out_dir / name for name in written]
@@ -341,5 +344,5 @@ def translate_files(model: str | Path, inputs: list[str | Path], out_dir: str | 
 def _describe_roi(roi: dict) -> str:
     crop = (f"centre crop {roi['crop_fraction']}" if roi["visual_crop"] == "centre"
             else f"grid of tiles {roi['crop_fraction']}")
-    return (f"(tactile_box {roi['tactile_box']}, markers {'removed' if roi['remove_markers'] else 'kept'}, "
-            f"{crop}, {roi['size']} px)")
+    return (f"tactile_box {roi['tactile_box']}, markers {'removed' if roi['remove_markers'] else 'kept'}, "
+            f"{crop}, {roi['size']} px")
