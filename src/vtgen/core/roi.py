@@ -397,23 +397,202 @@ def cut_tile(image: np.ndarray, box: Box, size: int) -> np.ndarray:
     return cv2.resize(crop, (size, size), interpolation=cv2.INTER_AREA if shrinking else cv2.INTER_CUBIC)
 
 
-# --- the per-image ROI rule: region, crops and tiles of one image -------------------------------------------
+# --- round sensors: the contact disc of a round optical tactile frame ---------------------------------------
 
 
-def tactile_region(frame: np.ndarray, tactile_box) -> Box:
-    """The part of a tactile frame to cut from: detected (``"auto"``), the ``"full"`` frame, or a fixed ``[x, y, w, h]``.
+@dataclass(frozen=True)
+class Disc:
+    """A circle fitted to a frame by :func:`find_disc`, in full-frame pixel coordinates.
 
-    ``ValueError`` if a fixed box does not fit the frame.
+    ``cx, cy``: centre (pixel ``(i, j)`` has its centre at ``(i, j)``; the centre may lie in or near
+    the frame); ``radius`` in pixels; ``support``: the fraction of the circle's in-frame rim that
+    follows the detected edge (0 to 1: the confidence); ``overlap``: intersection over union of the
+    circle and the detected region's convex hull, both within the frame; ``found``: whether the fit
+    passed the acceptance rule; ``reason``: "" or why there is no disc.
+    """
+
+    cx: float
+    cy: float
+    radius: float
+    support: float
+    overlap: float
+    found: bool
+    reason: str = ""
+
+
+NO_DISC = float("nan")
+DISC_DETECTION_SIDE = 160
+"""Longer side, in pixels, of the area-downscaled frame that :func:`find_disc` works on."""
+
+
+def _as_grey(image: np.ndarray) -> np.ndarray:
+    return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+
+
+def _fit_circle(points: np.ndarray) -> tuple[float, float, float]:
+    """Algebraic least-squares circle (Kasa 1976) through ``points`` (N x 2): centre x, centre y, radius."""
+    x, y = points[:, 0], points[:, 1]
+    design = np.stack([2 * x, 2 * y, np.ones_like(x)], axis=1)
+    (cx, cy, c), *_ = np.linalg.lstsq(design, x * x + y * y, rcond=None)
+    return float(cx), float(cy), float(np.sqrt(max(c + cx * cx + cy * cy, 0.0)))
+
+
+def find_disc(frame: np.ndarray, flat_level: float = 8.0, min_support: float = 0.6, min_overlap: float = 0.85,
+              min_radius: float = 0.15) -> Disc:
+    """The round sensing area of a round optical tactile frame (a disc against a flat surround).
+
+    ``frame`` is (H, W, 3) RGB or (H, W) grey uint8. Method, on the grey frame area-downscaled so
+    that its longer side is :data:`DISC_DETECTION_SIDE` px:
+
+    1. the surround level is the median of the most common 24-level band of the 2 px border strip;
+    2. each pixel's local RMS deviation from it (a 5 x 5 box mean of the squared difference: a
+       brighter, darker or textured disc all deviate) is thresholded by Otsu (at least
+       ``flat_level`` grey levels);
+    3. the connected components of at least 5 % of the largest one are merged and their convex
+       hull is taken: contact can make parts of the disc as bright as the surround, cutting
+       notches into the region or splitting it, and the hull bridges them; its vertices lie on
+       the rim;
+    4. a circle is fitted (algebraic least squares, Kasa) to the hull vertices that are not on the
+       frame border (a disc may be cut by the frame), then refitted four times keeping only the
+       vertices on or just outside the circle (within ``max(1, 0.02 r)`` px inside, at most
+       ``max(tol, 2.5 x median residual)`` outside): missing rim only ever pulls points inward.
+
+    Accepted as a disc (``found``) when the fraction of the circle's in-frame rim within 1.5 px
+    of the detected region's outline (``support``) is at least ``min_support``, the circle and
+    the hull overlap by at least ``min_overlap`` (IoU), the radius is at least ``min_radius`` of
+    the frame's shorter side and the centre lies in the frame. A rectangle's fitted circle passes
+    through its corners (support about 0.2, IoU about 0.64), so a GelSight contact rectangle is
+    no disc. A flat frame, or one whose region touches the border everywhere (no rim), gives
+    ``found=False`` with the reason.
+    """
+    grey = _as_grey(frame)
+    height, width = grey.shape
+    scale = max(height, width) / DISC_DETECTION_SIDE if max(height, width) > DISC_DETECTION_SIDE else 1.0
+    w, h = max(1, round(width / scale)), max(1, round(height / scale))
+    small = cv2.resize(grey, (w, h), interpolation=cv2.INTER_AREA) if (w, h) != (width, height) else grey
+    sx, sy = width / w, height / h
+
+    def none(reason: str, *fit) -> Disc:
+        return Disc(*(fit or (NO_DISC,) * 5), found=False, reason=reason)
+
+    if min(w, h) < 8:
+        return none(f"frame {width}x{height} too small to find a disc")
+    border = np.concatenate([small[:2].ravel(), small[-2:].ravel(), small[2:-2, :2].ravel(), small[2:-2, -2:].ravel()])
+    bands = border >> 3
+    mode = int(np.argmax(np.bincount(bands, minlength=32)))
+    surround = float(np.median(border[np.abs(bands.astype(int) - mode) <= 1]))
+    diff = small.astype(np.float32) - surround
+    deviation = np.minimum(np.sqrt(cv2.boxFilter(diff * diff, -1, (5, 5))), 255).astype(np.uint8)
+    if deviation.max() <= flat_level:
+        return none("flat frame: nothing departs from the surround")
+    level, _ = cv2.threshold(deviation, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+    region = cv2.compare(deviation, max(level, flat_level), cv2.CMP_GT)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(region, connectivity=8)
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    kept = np.zeros(count, np.uint8)
+    kept[1:] = areas >= 0.05 * areas.max()
+    region = kept[labels].astype(np.uint8)
+    contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    outline = np.concatenate(contours)[:, 0]
+    hull = cv2.convexHull(outline)
+    vertices = hull[:, 0].astype(np.float64)
+    vertices = vertices[(vertices[:, 0] > 0) & (vertices[:, 1] > 0) & (vertices[:, 0] < w - 1) & (vertices[:, 1] < h - 1)]
+    if len(vertices) < 5:
+        return none("no rim: the region touches the frame border almost everywhere")
+    keep = np.ones(len(vertices), bool)
+    for _ in range(5):
+        cx, cy, r = _fit_circle(vertices[keep])
+        signed = np.hypot(vertices[:, 0] - cx, vertices[:, 1] - cy) - r
+        tol = max(1.0, 0.02 * r)
+        new = (signed >= -tol) & (signed <= max(tol, 2.5 * float(np.median(np.abs(signed[keep])))))
+        if new.sum() < 5 or np.array_equal(new, keep):
+            break
+        keep = new
+    # support: how much of the circle's in-frame rim lies on the region's outline
+    edge = np.zeros((h, w), np.uint8)
+    cv2.drawContours(edge, contours, -1, 1, 1)
+    edge = cv2.dilate(edge, np.ones((3, 3), np.uint8))
+    angles = np.linspace(0, 2 * np.pi, max(64, int(2 * np.pi * r)), endpoint=False)
+    rx, ry = np.rint(cx + r * np.cos(angles)).astype(int), np.rint(cy + r * np.sin(angles)).astype(int)
+    inside = (rx > 0) & (ry > 0) & (rx < w - 1) & (ry < h - 1)
+    support = float(edge[ry[inside], rx[inside]].mean()) if inside.any() else 0.0
+    hull_mask = np.zeros((h, w), np.uint8)
+    cv2.fillConvexPoly(hull_mask, hull, 1)
+    circle = np.zeros((h, w), np.uint8)
+    cv2.circle(circle, (round(cx * 16), round(cy * 16)), max(1, round(r * 16)), 1, -1, shift=4)
+    overlap = float(cv2.countNonZero(circle & hull_mask) / max(1, cv2.countNonZero(circle | hull_mask)))
+    fit = ((cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5, r * (sx + sy) / 2, support, overlap)
+    if not (0 <= fit[0] <= width - 1 and 0 <= fit[1] <= height - 1):
+        return none("the fitted circle's centre lies outside the frame", *fit)
+    if fit[2] < min_radius * min(width, height):
+        return none(f"the fitted circle is too small (radius {fit[2]:.0f} px)", *fit)
+    if support < min_support or overlap < min_overlap:
+        return none(f"not round: rim support {support:.2f} (need {min_support}), overlap {overlap:.2f} "
+                    f"(need {min_overlap})", *fit)
+    return Disc(*fit, found=True)
+
+
+def disc_square(disc: Disc, width: int, height: int) -> Box:
+    """The largest square centred on the disc's centre that lies inside both the disc and the frame.
+
+    Side ``floor(min(sqrt(2) r, 2 (cx + 0.5), 2 (W - 0.5 - cx), 2 (cy + 0.5), 2 (H - 0.5 - cy)))``
+    (the inscribed square of the disc unless the frame cuts it first), at least 1; its corner is
+    rounded to whole pixels and kept in the frame.
+    """
+    half_limits = [np.sqrt(2) * disc.radius, 2 * (disc.cx + 0.5), 2 * (width - 0.5 - disc.cx),
+                   2 * (disc.cy + 0.5), 2 * (height - 0.5 - disc.cy)]
+    side = max(1, min(int(np.floor(min(half_limits))), width, height))
+    x = min(max(0, round(disc.cx + 0.5 - side / 2)), width - side)
+    y = min(max(0, round(disc.cy + 0.5 - side / 2)), height - side)
+    return Box(x, y, side, side)
+
+
+@dataclass(frozen=True)
+class Region:
+    """The part of an image that crops are cut from, and how it was chosen.
+
+    ``shape``: ``"disc"`` (a round sensor's disc: ``box`` is :func:`disc_square`), ``"rectangle"``
+    (a GelSight contact region, :func:`contact_box`), ``"frame"`` (the whole frame: asked for with
+    ``full``, a visual image, or :func:`contact_box`'s fallback), or ``"fixed"`` (a configured box).
+    ``disc`` is the circle fit when one was tried (``tactile_box: auto``), found or not; ``note``
+    says which fallback was used and why ("" otherwise).
+    """
+
+    shape: str
+    box: Box
+    disc: Disc | None = None
+    note: str = ""
+
+
+def tactile_region_of(frame: np.ndarray, tactile_box) -> Region:
+    """The region of a tactile frame, with how it was found.
+
+    ``tactile_box``: ``"full"`` (the frame), ``[x, y, w, h]`` (fixed; ``ValueError`` if it does not
+    fit) or ``"auto"``: a round sensor's disc (:func:`find_disc`; region :func:`disc_square`) when
+    one is found, otherwise the GelSight contact rectangle of :func:`contact_box` (shape
+    ``"rectangle"``, or ``"frame"`` when it falls back to the whole frame).
     """
     height, width = frame.shape[:2]
     if tactile_box == "auto":
-        return contact_box(frame)
+        disc = find_disc(frame)
+        if disc.found:
+            return Region("disc", disc_square(disc, width, height), disc)
+        rgb = frame if frame.ndim == 3 else cv2.cvtColor(frame, cv2.COLOR_GRAY2RGB)
+        box = contact_box(rgb)
+        shape = "frame" if box == Box(0, 0, width, height) else "rectangle"
+        return Region(shape, box, disc, f"no disc ({disc.reason}); GelSight contact detection"
+                      + (", which found no contact region either: whole frame" if shape == "frame" else ""))
     if tactile_box == "full":
-        return Box(0, 0, width, height)
+        return Region("frame", Box(0, 0, width, height))
     box = Box(*tactile_box)
     if not box.fits(width, height):
         raise ValueError(f"roi.tactile_box {list(tactile_box)} does not fit a {width}x{height} frame")
-    return box
+    return Region("fixed", box)
+
+
+def tactile_region(frame: np.ndarray, tactile_box) -> Box:
+    """``tactile_region_of(frame, tactile_box).box``: the part of a tactile frame to cut from."""
+    return tactile_region_of(frame, tactile_box).box
 
 
 def crop_boxes(region: Box, visual_crop: str, crop_fraction: float) -> list[Box]:
@@ -441,31 +620,132 @@ def too_small(region: Box, roi: Mapping) -> str:
     return ""
 
 
+@dataclass(frozen=True)
+class ImageROI:
+    """What the ROI rule did with one image: the region (``None`` when the image gives no tile),
+    the crop boxes in frame coordinates, the (size, size, 3) uint8 tiles, and "" or the reason
+    the image gives no tile."""
+
+    region: Region | None
+    boxes: list[Box]
+    tiles: list[np.ndarray]
+    reason: str = ""
+
+
+def _check_image(image: np.ndarray) -> None:
+    if isinstance(image, np.ndarray) and image.dtype == np.uint8 and image.ndim == 2:
+        return
+    _check_rgb(image)
+
+
+def _cut_grey_or_rgb(image: np.ndarray, box: Box, size: int) -> np.ndarray:
+    """:func:`cut_tile` of an RGB image, or of a grey one replicated to three equal channels (the
+    same pixels as cutting the replicated image: each channel is resized alone)."""
+    if image.ndim == 3:
+        return cut_tile(image, box, size)
+    crop = image[box.y : box.y + box.h, box.x : box.x + box.w]
+    if not (box.w == box.h == size):
+        shrinking = size <= min(box.w, box.h)
+        crop = cv2.resize(crop, (size, size), interpolation=cv2.INTER_AREA if shrinking else cv2.INTER_CUBIC)
+    return np.repeat(crop[:, :, None], 3, axis=2)
+
+
+def tiles_without_markers_near(image: np.ndarray, boxes: list[Box], size: int, radius: int = 3) -> list[np.ndarray]:
+    """The tiles of ``boxes`` with marker dots painted out, looking for the dots only near each box.
+
+    For a box that the tile shrinks, at the tile's resolution: the box plus a margin of an eighth
+    of its side (at least 8 px) is area-resized like the tile, the exact tile (:func:`cut_tile`)
+    is put in its middle, :func:`marker_mask` runs on that small context (its own statistics, dots
+    at least 9 tile pixels in area: smaller ones barely show in the tile) and the dots are
+    inpainted (Telea, radius scaled to the tile, at least 1 px). Otherwise
+    :func:`cut_tiles_without_markers` of the box plus that margin, at the frame's resolution. So
+    the surround of a round sensor, which is not gel, never sets the thresholds, and a crop
+    without dots costs one small mask (about 16 times fewer pixels than the crop for 256 -> 64).
+    Tile pixels not touched by a dot equal the plain tile exactly. ``image`` may be grey (H, W);
+    tiles are (size, size, 3) RGB.
+    """
+    height, width = image.shape[:2]
+    tiles = []
+    for box in boxes:
+        tile = _cut_grey_or_rgb(image, box, size)
+        x0, y0, x1, y1 = _window(box, max(8, max(box.w, box.h) // 8), width, height)
+        window = np.ascontiguousarray(image[y0:y1, x0:x1])
+        window = window if window.ndim == 3 else cv2.cvtColor(window, cv2.COLOR_GRAY2RGB)
+        inner = Box(box.x - x0, box.y - y0, box.w, box.h)
+        if not (size <= min(box.w, box.h) and not box.w == box.h == size):
+            tiles.append(cut_tiles_without_markers(window, [inner], size, radius)[0])
+            continue
+        sx, sy = size / box.w, size / box.h
+        left, top = round(inner.x * sx), round(inner.y * sy)
+        right, bottom = round((window.shape[1] - inner.x - inner.w) * sx), round((window.shape[0] - inner.y - inner.h) * sy)
+        context = cv2.resize(window, (left + size + right, top + size + bottom), interpolation=cv2.INTER_AREA)
+        context[top : top + size, left : left + size] = tile
+        holes = marker_mask(context)
+        if not holes[top : top + size, left : left + size].any():
+            tiles.append(tile)
+            continue
+        cleaned = cv2.inpaint(context, holes.view(np.uint8), max(1, round(radius * min(sx, sy))), cv2.INPAINT_TELEA)
+        tiles.append(cleaned[top : top + size, left : left + size].copy())
+    return tiles
+
+
+def image_roi(image: np.ndarray, modality: str, roi: Mapping) -> ImageROI:
+    """The ROI rule for one image, with the region it chose (see :func:`image_tiles`)."""
+    _check_image(image)
+    height, width = image.shape[:2]
+    clean = modality == "tactile" and roi["remove_markers"]
+    cut = "plain"  # or "window": markers painted out around the crops; "frame": markers of the whole frame
+    if modality != "tactile":
+        region = Region("frame", Box(0, 0, width, height))
+    elif roi["tactile_box"] == "auto":
+        disc = find_disc(image)
+        if disc.found:
+            region = Region("disc", disc_square(disc, width, height), disc)
+            cut = "window" if clean else "plain"
+        else:  # GelSight: contact detection looks at the whole frame, cleaned first when asked
+            image = image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
+            if clean:
+                image = remove_markers(image)
+            box = contact_box(image)
+            shape = "frame" if box == Box(0, 0, width, height) else "rectangle"
+            region = Region(shape, box, disc, f"no disc ({disc.reason}); GelSight contact detection"
+                            + (", which found no contact region: whole frame" if shape == "frame" else ""))
+    else:
+        region = tactile_region_of(image, roi["tactile_box"])
+        cut = "frame" if clean else "plain"
+    if reason := too_small(region.box, roi):
+        return ImageROI(None, [], [], reason)
+    boxes = crop_boxes(region.box, roi["visual_crop"], roi["crop_fraction"])
+    size = roi["size"]
+    if cut == "window":
+        tiles = tiles_without_markers_near(image, boxes, size)
+    elif cut == "frame":  # inpaints only around the boxes, at the tiles' resolution: same tiles as cleaning the frame, nearly
+        rgb = image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
+        tiles = cut_tiles_without_markers(rgb, boxes, size)
+    else:
+        tiles = [_cut_grey_or_rgb(image, box, size) for box in boxes]
+    return ImageROI(region, boxes, tiles)
+
+
 def image_tiles(image: np.ndarray, modality: str, roi: Mapping) -> tuple[list[Box], list[np.ndarray], str]:
     """The ROI rule for one image: ``(boxes, tiles, reason)``.
 
-    ``image`` is (H, W, 3) uint8 RGB; ``modality`` is ``"tactile"`` or ``"visual"``; ``roi`` is
-    params.yaml's ``roi`` section (``size``, ``tactile_box``, ``remove_markers``, ``visual_crop``,
-    ``crop_fraction``). The region is the whole image for visual images and
-    :func:`tactile_region` for tactile frames; the crops are :func:`crop_boxes` of the region, in
-    frame coordinates; each tile is the crop resized to ``size`` (:func:`cut_tile`), a
-    (size, size, 3) uint8 array. With ``remove_markers`` the GelSight marker dots are painted out
-    of tactile tiles: with ``tactile_box: auto`` the whole frame is cleaned first
-    (:func:`remove_markers`: detection looks at all of it), otherwise only around each crop
-    (:func:`cut_tiles_without_markers`). ``reason`` is "" or why the image gives no tile (then
+    ``image`` is (H, W, 3) uint8 RGB or (H, W) uint8 grey (the same tiles as its 3-channel
+    replica); ``modality`` is ``"tactile"`` or ``"visual"``; ``roi`` is params.yaml's ``roi``
+    section (``size``, ``tactile_box``, ``remove_markers``, ``visual_crop``, ``crop_fraction``).
+
+    Region: the whole image for visual images; for tactile frames ``full``, a fixed box, or with
+    ``auto`` a round sensor's disc (:func:`find_disc`; the region is :func:`disc_square`, the
+    largest centred square inside the disc) and otherwise the GelSight contact rectangle
+    (:func:`contact_box`, on the frame with its markers removed when ``remove_markers``). Crops:
+    :func:`crop_boxes` of the region (``crop_fraction`` of its shorter side), in frame
+    coordinates; tiles: each crop resized to ``size`` (:func:`cut_tile`), (size, size, 3) uint8,
+    three equal channels for a grey image. With ``remove_markers`` GelSight marker dots are painted
+    out of tactile tiles: around each crop with the whole frame's marker mask
+    (:func:`cut_tiles_without_markers`) for ``full`` and fixed boxes, from the cleaned frame for a
+    GelSight rectangle, and with the mask of the window around the crops for a disc
+    (:func:`tiles_without_markers_near`). ``reason`` is "" or why the image gives no tile (then
     ``boxes`` and ``tiles`` are empty). ``ValueError`` for a fixed box that does not fit.
     """
-    _check_rgb(image)
-    clean = modality == "tactile" and roi["remove_markers"]
-    if modality == "tactile":
-        if clean and roi["tactile_box"] == "auto":  # contact detection looks at the whole cleaned frame
-            image, clean = remove_markers(image), False
-        region = tactile_region(image, roi["tactile_box"])
-    else:
-        region = Box(0, 0, image.shape[1], image.shape[0])
-    if reason := too_small(region, roi):
-        return [], [], reason
-    boxes = crop_boxes(region, roi["visual_crop"], roi["crop_fraction"])
-    if clean:  # inpaints only around the boxes, at the tiles' resolution: same tiles as cleaning the frame, nearly
-        return boxes, cut_tiles_without_markers(image, boxes, roi["size"]), ""
-    return boxes, [cut_tile(image, box, roi["size"]) for box in boxes], ""
+    result = image_roi(image, modality, roi)
+    return result.boxes, result.tiles, result.reason

@@ -1,31 +1,39 @@
 """ROI stage: cut every manifest image into square tiles at the model resolution.
 
-Writes ``tiles/``, ``tiles.parquet`` and ``preview.png`` (visual and tactile tiles per class).
+Writes ``tiles/``, ``tiles.parquet``, ``regions.parquet``, ``summary.json`` and ``preview.png``
+(visual and tactile tiles per class).
 
-For each image a *region* is chosen first: for tactile frames the GelSight contact region
-(``roi.tactile_box``: ``auto`` detection, ``full`` frame, or a fixed ``[x, y, w, h]``), for
-visual images the whole photo. Inside the region, ``roi.visual_crop`` cuts one centred square
-(``centre``) or a grid of squares (``tiles``) whose side is ``roi.crop_fraction`` of the
-region's shorter side; each crop is resized to ``roi.size``. The same crop rule applies to
-both modalities, so aligned data (equal regions) gives aligned tiles with equal boxes.
-With ``roi.remove_markers`` the GelSight marker dots are painted out of the tactile tiles
-(:func:`vtgen.roi.cut_tiles_without_markers`: inpainted around each crop only, at the tile's
-resolution); with ``tactile_box: auto`` the whole frame is cleaned first, as contact detection
-looks at all of it.
+Each image goes through :func:`vtgen.core.roi.image_roi`, the per-image rule that
+:func:`vtgen.core.roi.image_tiles` also exposes to other stages: a *region* is chosen first (for
+tactile frames per ``roi.tactile_box``: ``auto`` finds a round sensor's disc, else a GelSight
+contact rectangle; ``full`` frame; or a fixed ``[x, y, w, h]``; for visual images the whole
+photo); inside it ``roi.visual_crop`` cuts one centred square (``centre``) or a grid of squares
+(``tiles``) whose side is ``roi.crop_fraction`` of the region's shorter side; each crop is resized
+to ``roi.size``. The same crop rule applies to both modalities, so aligned data (equal regions)
+gives aligned tiles with equal boxes. ``roi.remove_markers`` paints marker dots out of tactile tiles.
+
+``regions.parquet`` has one row per manifest image (:data:`REGION_COLUMNS`): the region's shape
+(``disc``, ``rectangle``, ``frame``, ``fixed``; "" for a skipped image) and box, the disc fit when
+one was tried (centre, radius, ``disc_support``: the confidence, ``disc_overlap``, ``disc_found``),
+the fallback used (``note``) and ``channels`` (1 when the image is greyscale in content).
+``summary.json`` counts the shapes per modality (``regions``) and gives ``channels`` per modality
+(1 when every image of it is greyscale: the tiles then hold three equal channels).
 
 An image too small for the centre crop (``crop_fraction`` of its shorter side is under one
 pixel) gives no tile; it is listed with the reason under ``skipped`` in ``summary.json``.
 Images are read, cut and written one per worker thread at a time, with at most a few images per
-worker in flight (:func:`vtgen.imageio.stream_map`); the manifest is read row by row and each
-image's tiles are written before the next image is read. Only the tile table is kept in memory,
-built column by column: the tile's file name and box, and the position of its manifest row, whose
-text columns are copied once at the end.
+worker in flight (:func:`vtgen.io.images.stream_map`); the manifest is read row by row and each
+image's tiles are written before the next image is read. Only the tile and region tables are kept
+in memory, built column by column. JPEG files are decoded with OpenCV (the same pixels as
+:func:`vtgen.io.images.read_rgb8`, checked in the tests; a greyscale JPEG stays one channel until
+its tiles are cut), anything else with ``read_rgb8``; tiles are written as RGB PNG (zlib level 1).
 """
 
 from __future__ import annotations
 
 import json
 import time
+from array import array
 from pathlib import Path
 
 import cv2
@@ -34,7 +42,7 @@ import pandas as pd
 
 from vtgen.io.images import atomic_output_dir, ImageError, labelled_sheet, read_rgb8, stream_map, write_png
 from vtgen.io.tables import read_table
-from vtgen.core.roi import crop_boxes, image_tiles, tactile_region  # noqa: F401 - crop_boxes, tactile_region: re-exported
+from vtgen.core.roi import crop_boxes, image_roi, ImageROI, tactile_region  # noqa: F401 - crop_boxes, tactile_region: re-exported
 from vtgen.io.tables import TILE_COLUMNS
 
 MANIFEST_NEEDS = ["path", "class", "modality", "split", "source", "group", "pair_key", "width", "height"]
@@ -46,66 +54,148 @@ _FROM_MANIFEST = {"image_path": "path", "class": "class", "modality": "modality"
 _BOX_COLUMNS = ["tile_index", "box_x", "box_y", "box_w", "box_h"]
 
 
-def _tile_one(args) -> list[tuple] | str:
-    """``(tile file name, tile index, box)`` of each tile of one manifest image, written to
-    ``tiles_dir/<modality>/<class>/``, or the reason the image gives no tile."""
+REGION_COLUMNS = ["image_path", "modality", "class", "shape", "region_x", "region_y", "region_w", "region_h",
+                  "disc_found", "disc_cx", "disc_cy", "disc_radius", "disc_support", "disc_overlap", "note", "channels"]
+_JPEG = frozenset({".jpg", ".jpeg"})
+
+
+def read_for_roi(path: str | Path) -> np.ndarray:
+    """The image at ``path`` as (H, W) grey or (H, W, 3) RGB uint8: the pixels of ``read_rgb8`` (grey
+    replicated to RGB there). Baseline 8-bit grey and colour JPEGs are decoded by OpenCV (3-4 times
+    faster than Pillow plus the RGB copy on 640x480 grey frames); anything else, or a file OpenCV
+    decodes to another shape or type, goes through ``read_rgb8`` and its errors."""
+    if Path(path).suffix.lower() in _JPEG:
+        try:
+            data = np.fromfile(path, np.uint8)
+        except OSError:
+            data = None
+        if data is not None and data[:3].tobytes() == b"\xff\xd8\xff":
+            decoded = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+            if decoded is not None and decoded.dtype == np.uint8:
+                if decoded.ndim == 2:
+                    return decoded
+                if decoded.ndim == 3 and decoded.shape[2] == 3:
+                    return cv2.cvtColor(decoded, cv2.COLOR_BGR2RGB)
+    return read_rgb8(path).rgb
+
+
+def write_tile_png(path: Path, rgb: np.ndarray) -> None:
+    """Write a (size, size, 3) uint8 RGB tile as an RGB PNG, zlib level 1 (as ``write_png``: the same
+    pixels and size; OpenCV's encoder is faster)."""
+    ok, encoded = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    encoded.tofile(path)
+
+
+def _is_grey(image: np.ndarray, tiles: list[np.ndarray]) -> bool:
+    """Greyscale in content: a one-channel image, or tiles whose three channels are equal."""
+    return image.ndim == 2 or all(
+        np.array_equal(t[..., 0], t[..., 1]) and np.array_equal(t[..., 1], t[..., 2]) for t in tiles)
+
+
+def _tile_one(args) -> tuple[ImageROI, int, list[str]]:
+    """The ROI of one manifest image, its channels (1: greyscale content) and the tile file names
+    (relative to ``tiles_dir``) written to ``tiles_dir/<modality>/<class>/``."""
     index, path, modality, cls, roi, tiles_dir, made = args
     try:
-        image = read_rgb8(path).rgb
+        image = read_for_roi(path)
     except ImageError as exc:
         raise ImageError(f"{path}: {exc} (has it changed since the ingest stage? rerun ingest)") from exc
     try:
-        boxes, tiles, reason = image_tiles(image, modality, roi)
+        result = image_roi(image, modality, roi)
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from exc
-    if reason:
-        return reason
+    channels = 1 if _is_grey(image, result.tiles) else 3
+    if result.reason:
+        return result, channels, []
     folder = tiles_dir / modality / cls
     if folder not in made:  # one mkdir per folder, not per image (a race only repeats a harmless mkdir)
         folder.mkdir(parents=True, exist_ok=True)
         made.add(folder)
-    out = []
+    names = []
     stem = Path(path).stem
-    for k, (box, tile) in enumerate(zip(boxes, tiles)):
+    for k, tile in enumerate(result.tiles):
         name = f"{index:06d}_{stem}_{k}.png"
-        write_png(folder / name, tile)
-        out.append((f"{modality}/{cls}/{name}", k, box))
-    return out
+        write_tile_png(folder / name, tile)
+        names.append(f"{modality}/{cls}/{name}")
+    return result, channels, names
+
+
+class _RegionRecorder:
+    """The region table, column by column in compact arrays (metadata only, a few dozen bytes per image)."""
+
+    def __init__(self) -> None:
+        self.shape: list[str] = []
+        self.note: list[str] = []
+        self.ints = {name: array("i") for name in ("region_x", "region_y", "region_w", "region_h", "disc_found", "channels")}
+        self.floats = {name: array("d") for name in ("disc_cx", "disc_cy", "disc_radius", "disc_support", "disc_overlap")}
+
+    def add(self, result: ImageROI, channels: int) -> None:
+        region, nan = result.region, float("nan")
+        box = region.box if region is not None else None
+        disc = region.disc if region is not None else None
+        self.shape.append(region.shape if region is not None else "")
+        self.note.append(result.reason or (region.note if region is not None else ""))
+        for name, value in zip(("region_x", "region_y", "region_w", "region_h"), (box.x, box.y, box.w, box.h) if box else (-1,) * 4):
+            self.ints[name].append(value)
+        self.ints["disc_found"].append(-1 if disc is None else int(disc.found))
+        self.ints["channels"].append(channels)
+        values = (disc.cx, disc.cy, disc.radius, disc.support, disc.overlap) if disc is not None else (nan,) * 5
+        for name, value in zip(self.floats, values):
+            self.floats[name].append(value)
+
+    def table(self, manifest: pd.DataFrame) -> pd.DataFrame:
+        found = np.asarray(self.ints["disc_found"], np.int8)
+        columns = {"image_path": manifest["path"].to_numpy(), "modality": manifest["modality"].to_numpy(),
+                   "class": manifest["class"].to_numpy(), "shape": self.shape,
+                   **{name: np.asarray(self.ints[name], np.int32) for name in ("region_x", "region_y", "region_w", "region_h")},
+                   "disc_found": pd.array([None if f < 0 else bool(f) for f in found], dtype="boolean"),
+                   **{name: np.asarray(values, np.float64) for name, values in self.floats.items()},
+                   "note": self.note, "channels": np.asarray(self.ints["channels"], np.int8)}
+        return pd.DataFrame(columns, columns=REGION_COLUMNS)
 
 
 def cut_dataset_tiles(manifest: pd.DataFrame, roi: dict, tiles_dir: Path, workers: int = 2,
-                      progress: bool = True, skipped: list[dict] | None = None) -> pd.DataFrame:
+                      progress: bool = True, skipped: list[dict] | None = None,
+                      regions: list[pd.DataFrame] | None = None) -> pd.DataFrame:
     """Cut all manifest images into ``tiles_dir``; return the tile table (``tile_path`` relative to it).
 
-    Images that give no tile are appended to ``skipped`` as ``{"path", "reason"}``. The manifest
-    is read lazily and at most a few images per worker are in flight, so memory holds the tile
-    table (metadata) only, not the pixels of more than a handful of images.
+    Images that give no tile are appended to ``skipped`` as ``{"path", "reason"}``; the region
+    table (:data:`REGION_COLUMNS`, one row per manifest image) is appended to ``regions`` when given.
+    The manifest is read lazily and at most a few images per worker are in flight, so memory holds
+    the tables (metadata) only, not the pixels of more than a handful of images.
     """
     tiles_dir, made = Path(tiles_dir), set()
     jobs = ((i, path, modality, cls, roi, tiles_dir, made) for i, (path, modality, cls) in
             enumerate(zip(manifest["path"], manifest["modality"], manifest["class"])))
     tile_paths: list[str] = []
-    positions: list[int] = []  # the manifest row (by position) of each tile
-    boxes: dict[str, list[int]] = {name: [] for name in _BOX_COLUMNS}
+    positions = array("i")  # the manifest row (by position) of each tile
+    boxes = {name: array("i") for name in _BOX_COLUMNS}
+    recorder = _RegionRecorder()
     # our workers are the parallelism: OpenCV's own thread pool on top of them only adds contention
     opencv_threads = cv2.getNumThreads()
     cv2.setNumThreads(1 if workers > 1 else opencv_threads)
     try:
         results = stream_map(_tile_one, jobs, workers, len(manifest), "roi", progress)
-        for position, tiles in enumerate(results):  # results come in manifest order
-            if isinstance(tiles, str):
+        for position, (result, channels, names) in enumerate(results):  # results come in manifest order
+            recorder.add(result, channels)
+            if result.reason:
                 if skipped is not None:
-                    skipped.append({"path": manifest["path"].iat[position], "reason": tiles})
+                    skipped.append({"path": manifest["path"].iat[position], "reason": result.reason})
                 continue
-            for tile_path, k, box in tiles:
+            for k, (tile_path, box) in enumerate(zip(names, result.boxes)):
                 tile_paths.append(tile_path)
                 positions.append(position)
                 for name, value in zip(_BOX_COLUMNS, (k, box.x, box.y, box.w, box.h)):
                     boxes[name].append(value)
     finally:
         cv2.setNumThreads(opencv_threads)
-    rows = manifest.iloc[positions].reset_index(drop=True)  # one manifest row per tile, text copied once
-    table = {"tile_path": tile_paths, **{column: rows[name] for column, name in _FROM_MANIFEST.items()}, **boxes}
+    if regions is not None:
+        regions.append(recorder.table(manifest))
+    rows = manifest.iloc[np.asarray(positions, np.intp)].reset_index(drop=True)  # one manifest row per tile
+    table = {"tile_path": tile_paths, **{column: rows[name] for column, name in _FROM_MANIFEST.items()},
+             **{name: np.asarray(values, np.int64) for name, values in boxes.items()}}
     return pd.DataFrame(table, columns=TILE_COLUMNS)
 
 
@@ -123,22 +213,30 @@ def tile_preview(tiles: pd.DataFrame, tiles_dir: Path, per_class: int = 4, side:
 
 
 def run_roi(manifest_path: str | Path, roi: dict, out_dir: str | Path, workers: int = 2) -> dict:
-    """Stage entry: write ``tiles/`` and ``tiles.parquet`` (+ summary.json) into ``out_dir``."""
+    """Stage entry: write ``tiles/``, ``tiles.parquet``, ``regions.parquet``, ``summary.json`` and
+    ``preview.png`` into ``out_dir``; return the summary."""
     manifest = read_table(manifest_path, MANIFEST_NEEDS, "the ingest stage's manifest")
     started = time.perf_counter()
     skipped: list[dict] = []
+    regions: list[pd.DataFrame] = []
     with atomic_output_dir(out_dir) as tmp:
-        tiles = cut_dataset_tiles(manifest, roi, tmp / "tiles", workers, skipped=skipped)
+        tiles = cut_dataset_tiles(manifest, roi, tmp / "tiles", workers, skipped=skipped, regions=regions)
         if tiles.empty:
             reasons = sorted({s["reason"] for s in skipped})[:3]
             raise ValueError(f"{manifest_path}: no tiles cut from its {len(manifest)} images"
                              + (f" ({'; '.join(reasons)})" if reasons else ""))
         tiles.to_parquet(tmp / "tiles.parquet", index=False)
+        region_table = regions[0]
+        region_table.to_parquet(tmp / "regions.parquet", index=False)
         write_png(tmp / "preview.png", tile_preview(tiles, tmp / "tiles"))
         seconds = time.perf_counter() - started
+        cut = region_table[region_table["shape"] != ""]
         summary = {
             "images": len(manifest), "tiles": len(tiles), "tile_size": roi["size"],
             "tiles_per_modality": tiles["modality"].value_counts().to_dict(),
+            "regions": {modality: group["shape"].value_counts().sort_index().to_dict()
+                        for modality, group in cut.groupby("modality", sort=True)},
+            "channels": {modality: int(group["channels"].max()) for modality, group in cut.groupby("modality", sort=True)},
             "seconds": round(seconds, 3),
             "images_per_second": round(len(manifest) / seconds, 1) if seconds > 0 else None,
             "skipped": skipped,
