@@ -110,6 +110,20 @@ def test_translate_refuses_bad_images_with_a_clear_message(tmp_path, model_dir, 
     assert not (tmp_path / "out").exists()  # nothing is written when an input is refused
 
 
+def test_translate_converts_greyscale_alpha_and_16_bit_tiles_with_notes(tmp_path, model_dir, capsys):
+    write_image(tmp_path / "in/grey.png", np.full((32, 32), 7, np.uint8))
+    write_image(tmp_path / "in/alpha.png", np.full((32, 32, 4), 9, np.uint8))
+    write_image(tmp_path / "in/deep.png", np.full((32, 32), 65535, np.uint16))
+    written = translate_files(model_dir, [tmp_path / "in"], tmp_path / "out")
+    assert [p.name for p in written] == ["alpha.png", "deep.png", "grey.png"]
+    out = capsys.readouterr().out
+    for note in ("alpha channel dropped", "16-bit grayscale (I;16) scaled to 8-bit", "grayscale (L) replicated"):
+        assert note in out
+    generator, _ = load_translator(model_dir)
+    white = translate(generator, torch.full((1, 3, 32, 32), 255, dtype=torch.uint8))[0].permute(1, 2, 0).numpy()
+    assert np.array_equal(np.asarray(Image.open(tmp_path / "out/deep.png")), white)  # 65535 -> 255
+
+
 def test_translate_refuses_missing_inputs_wrong_direction_and_non_models(tmp_path, model_dir, capsys):
     assert main(["translate", str(tmp_path / "nope.png"), "--model", str(model_dir), "--out", str(tmp_path)]) == 2
     assert "no such file or folder" in capsys.readouterr().err
