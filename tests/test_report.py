@@ -14,27 +14,91 @@ import pandas as pd
 import pytest
 
 from conftest import REPO, tiny_params, write_image
-from vtgen.io.report_pages import PAPER, render_page
+from vtgen.io.report_pages import PAPER, PAPER_FILE, load_paper, render_page
 from vtgen.stages.report import accuracy_table, run_report, ssim_tables
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 SCREENSHOT = REPO / "logs" / "test-artifacts" / "report.png"
 CLASSES = ("<b>", "denim")
 FOLDERS = ("ingest", "pairs", "models", "generated", "scores", "classify")
+SHARED_PAPER = REPO.parent / "shared" / "paper" / "published_results.yaml"
+INTERVAL_METRICS = ("colour_ssim", "grey_ssim", "psnr", "set_colour_ssim", "nearest_real_colour_ssim")
 
 
-def _by_class(aligned: bool, classes=("denim", "felt")) -> pd.DataFrame:
+def _by_class(aligned: bool, classes=("denim", "felt"), half_width: float = 0.02) -> pd.DataFrame:
+    """The score stage's by_class table: every mean with a 95% interval of +- ``half_width``."""
     rows = []
     for direction in ("v2t", "t2v"):
         for cls in (*classes, "(all)"):
             for candidate, scope, value in (("generated", "all", 0.6), ("real_train", "-", 0.3),
                                             ("nearest_neighbour", "-", 0.4), ("mean_image", "-", 0.45),
                                             ("flat_mean_colour", "-", 0.5)):
-                rows.append({"direction": direction, "scope": scope, "candidate": candidate, "class": cls,
-                             "colour_ssim": value + 0.1 if aligned and candidate != "real_train" else np.nan,
-                             "grey_ssim": 0.7 if aligned else np.nan, "psnr": 20.0 if aligned else np.nan,
-                             "ms_ssim": np.nan, "set_colour_ssim": value, "nearest_real_colour_ssim": value + 0.2,
-                             "images": 3 if cls != "(all)" else 3 * len(classes)})
+                row = {"direction": direction, "scope": scope, "candidate": candidate, "class": cls,
+                       "colour_ssim": value + 0.1 if aligned and candidate != "real_train" else np.nan,
+                       "grey_ssim": 0.7 if aligned else np.nan, "psnr": 20.0 if aligned else np.nan,
+                       "ms_ssim": np.nan, "set_colour_ssim": value, "nearest_real_colour_ssim": value + 0.2,
+                       "images": 3 if cls != "(all)" else 3 * len(classes), "groups": 2 if cls != "(all)" else 4}
+                for metric in INTERVAL_METRICS:
+                    row[f"{metric}_low"], row[f"{metric}_high"] = row[metric] - half_width, row[metric] + half_width
+                rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def _distribution(classes=("denim", "felt")) -> pd.DataFrame:
+    """The score stage's distribution table: generated worse than real held-out, better than every baseline."""
+    level = {"real_heldout": 0.01, "generated": 0.05, "nearest_neighbour": 0.2, "mean_image": 0.3,
+             "flat_mean_colour": 0.4, "blurred_real": 0.25}
+    rows = []
+    for direction in ("v2t", "t2v"):
+        for cls in (*classes, "(all)"):
+            n = 3 if cls != "(all)" else 6
+            for candidate, value in level.items():
+                scope = "all" if candidate == "generated" else "-"
+                for view, metric, number, interval in (
+                        ("classifier", "kid", value, True), ("classifier", "fid", 100 * value, False),
+                        ("classifier", "two_sample", 0.5 + value, True), ("classifier", "coverage", 1 - value, False),
+                        ("random", "kid", value, True), ("pixels", "spectrum", value / 10, False)):
+                    rows.append({"direction": direction, "scope": scope, "class": cls, "candidate": candidate,
+                                 "view": view, "metric": metric, "value": number,
+                                 "low": number - 0.005 if interval else np.nan,
+                                 "high": number + 0.005 if interval else np.nan, "n": n, "n_reference": n})
+    return pd.DataFrame(rows)
+
+
+def _memorisation(classes=("denim", "felt")) -> pd.DataFrame:
+    rows = []
+    for direction in ("v2t", "t2v"):
+        for cls in (*classes, "(all)"):
+            for view in ("classifier", "pixels"):
+                for candidate, rate in (("generated", 0.5 if direction == "t2v" else 0.1), ("real_heldout", 0.1)):
+                    rows.append({"direction": direction, "class": cls, "view": view, "candidate": candidate,
+                                 "rate": rate, "nearest_is_train_share": rate, "n": 60, "n_train": 80})
+    return pd.DataFrame(rows)
+
+
+def _verdicts() -> list[dict]:
+    """Verdicts as the score stage writes them: V2T passes, T2V warns on memorisation."""
+    found = []
+    for direction in ("v2t", "t2v"):
+        found.append({"direction": direction, "family": "KID (classifier)", "metric": "kid", "view": "classifier",
+                      "status": "ok", "generated": 0.05, "real_heldout": 0.01, "best_baseline": "nearest_neighbour",
+                      "best_baseline_value": 0.2, "position": 0.79, "n": 6, "n_real": 6,
+                      "text": f"{direction.upper()} KID (classifier): generated 0.05 beats every trivial baseline "
+                              f"beyond the intervals (best nearest_neighbour 0.2; real vs real 0.01; n = 6)"})
+    found.append({"direction": "t2v", "family": "memorisation (classifier)", "metric": "memorisation",
+                  "view": "classifier", "status": "warning", "generated": 0.5, "real_heldout": 0.1, "n": 60,
+                  "n_real": 60, "text": "T2V memorisation (classifier): 0.500 of generated test images are closer to a "
+                                        "training image than any held-out real image is (above the real held-out "
+                                        "rate 0.100; n = 60 generated, 60 real)"})
+    return found
+
+
+def _pairs(direction: str, kinds: dict[str, int]) -> pd.DataFrame:
+    rows = [{"direction": direction, "split": split, "class": "denim", "input_path": f"in{i}.png",
+             "target_path": f"t{i}.png", "input_source": "s", "target_source": "s", "aligned": kind == "pixel",
+             "pair_kind": kind}
+            for split, count in (("train", 8), ("test", 2)) for kind, share in kinds.items()
+            for i in range(int(count * share))]
     return pd.DataFrame(rows)
 
 
@@ -56,7 +120,7 @@ def _timing(folder, stage: str, seconds: float) -> None:
     _write_json(folder / "timing.json", {"stage": stage, "seconds": seconds, "finished": "2024-01-01T00:00:00"})
 
 
-def fake_run(root, at_chance: bool | None = None) -> dict:
+def fake_run(root, at_chance: bool | None = None, greyscale: bool = False, half_width: float = 0.02) -> dict:
     """The output folders of every stage the report reads, small and fake, under ``root``; return them."""
     folders = {name: root / name for name in FOLDERS}
     _write_json(folders["ingest"] / "summary.json", {"entries_in": 13, "kept": 12, "quarantined": 1, "with_note": 0,
@@ -67,7 +131,10 @@ def fake_run(root, at_chance: bool | None = None) -> dict:
     _write_json(folders["pairs"] / "summary.json", {
         "tiles_per_split": {"test/visual": 2, "train/visual": 8},
         "v2t": {"train": {"pairs": 8, "aligned": 8}, "test": {"pairs": 2, "aligned": 2}},
-        "t2v": {"train": {"pairs": 8, "aligned": 8}, "test": {"pairs": 2, "aligned": 2}}, "warnings": []})
+        "t2v": {"train": {"pairs": 8, "aligned": 4}, "test": {"pairs": 2, "aligned": 1}},
+        "warnings": ["v2t: class denim: 2 name pairs promised by the layout were dropped"]})
+    _pairs("v2t", {"pixel": 1.0}).to_parquet(folders["pairs"] / "v2t.parquet")
+    _pairs("t2v", {"pixel": 0.5, "class": 0.5}).to_parquet(folders["pairs"] / "t2v.parquet")
     for direction, seconds in (("v2t", 4.0), ("t2v", 5.0)):
         model = folders["models"] / direction / "all"
         _write_json(model / "train.json", {"direction": direction, "scope": "all", "preset": "fast",
@@ -86,18 +153,80 @@ def fake_run(root, at_chance: bool | None = None) -> dict:
         _write_json(generated / "summary.json", {"direction": direction, "scopes": {"all": {"train": 2, "test": 2}}})
         write_image(generated / "preview.png", np.full((24, 48, 3), 128, np.uint8))
         _timing(generated, "generate", 0.5)
-    _write_json(folders["scores"] / "summary.json", {"ms_ssim": "not computed: images are 32 px"})
-    _by_class(aligned=True, classes=CLASSES).to_parquet(folders["scores"] / "by_class.parquet")
+    facts = {"halves_by": "group", "blur_sigma": 1.0, "half_a": 6, "half_b": 6, "greyscale": greyscale,
+             "ssim_name": "SSIM" if greyscale else "Colour-SSIM"}
+    _write_json(folders["scores"] / "summary.json", {
+        "ms_ssim": "not computed: images are 32 px", "verdicts": _verdicts(), "not_scored": {}, "notes": [],
+        "distribution": {"v2t": facts, "t2v": facts}, "seconds": {"ssim": 1.0}})
+    _by_class(aligned=True, classes=CLASSES, half_width=half_width).to_parquet(folders["scores"] / "by_class.parquet")
+    _distribution(CLASSES).to_parquet(folders["scores"] / "distribution.parquet")
+    _memorisation(CLASSES).to_parquet(folders["scores"] / "memorisation.parquet")
     _timing(folders["scores"], "score", 2.0)
     for modality in ("visual", "tactile"):
-        settings = {"real": {"final_mean": 0.7}, "real+generated": {"final_mean": 0.8}}
+        settings = {"real": {"final_mean": 0.71, "interval": [0.3, 0.95], "test_images": 4},
+                    "real+generated": {"final_mean": 0.81, "interval": [0.4, 0.97], "test_images": 4}}
         if at_chance is not None:
             settings["real"]["at_chance"] = at_chance
         _write_json(folders["classify"] / modality / "summary.json", {
             "modality": modality, "status": "ok", "classes": list(CLASSES), "settings": settings,
-            "counts": {"real_test": 4}, "notes": []})
+            "counts": {"real_test": 4}, "notes": [], "test_images_per_class": {c: 2 for c in CLASSES},
+            "gan_test": {"setting": "real", "final_mean": 0.5, "images": 4, "interval": [0.15, 0.85]},
+            "comparisons": [{"setting": "real+generated", "against": "real", "difference": 0.1, "overlap": True,
+                             "verdict": "within noise (95% intervals overlap)"}]})
         _accuracy(modality).to_parquet(folders["classify"] / modality / "accuracy.parquet")
+        _classify_by_class(modality).to_parquet(folders["classify"] / modality / "by_class.parquet")
         _timing(folders["classify"] / modality, "classify", 3.0)
+    return folders
+
+
+def _classify_by_class(modality: str) -> pd.DataFrame:
+    rows = [{"modality": modality, "setting": setting, "class": cls, "images": 2 if cls != "(all)" else 4,
+             "accuracy": value, "low": value - 0.3, "high": min(value + 0.2, 1.0), "seeds": 2}
+            for setting, value in (("real", 0.71), ("real+generated", 0.81), ("GAN-test", 0.5))
+            for cls in (*CLASSES, "(all)")]
+    return pd.DataFrame(rows)
+
+
+def fake_one_modality(root) -> dict:
+    """The stage outputs of a tactile-only dataset: no pairs, no models, nothing scored, no visual classifier."""
+    folders = {name: root / name for name in FOLDERS}
+    reason = "translation needs both modalities: this dataset has tactile images only"
+    _write_json(folders["ingest"] / "summary.json", {"entries_in": 12, "kept": 12, "quarantined": 0, "with_note": 0,
+                                                     "classes": list(CLASSES), "modalities": ["tactile"],
+                                                     "duplicates": {"exact": 1, "near": 3}})
+    pd.DataFrame(columns=["path", "class", "modality", "reason"]).to_parquet(folders["ingest"] / "quarantine.parquet")
+    _write_json(folders["pairs"] / "summary.json", {"tiles_per_split": {"test/tactile": 4, "train/tactile": 8},
+                                                    "translation": {"possible": False, "reason": reason},
+                                                    "warnings": []})
+    for direction in ("v2t", "t2v"):
+        _pairs(direction, {}).reindex(columns=["direction", "split", "class", "input_path", "target_path",
+                                               "input_source", "target_source", "aligned", "pair_kind"]).to_parquet(
+            folders["pairs"] / f"{direction}.parquet")
+        _write_json(folders["models"] / direction / "all" / "train.json",
+                    {"direction": direction, "scope": "all", "status": f"not applicable: {reason}"})
+        _write_json(folders["generated"] / direction / "summary.json",
+                    {"direction": direction, "scopes": {"all": {"status": f"not applicable: {reason}"}}})
+    _write_json(folders["scores"] / "summary.json", {"verdicts": [], "distribution": {}, "notes": [],
+                                                     "not_scored": {d: "no generated test images" for d in ("v2t", "t2v")}})
+    pd.DataFrame(columns=["direction", "scope", "candidate", "class"]).to_parquet(folders["scores"] / "by_class.parquet")
+    _distribution(CLASSES).iloc[:0].to_parquet(folders["scores"] / "distribution.parquet")
+    _memorisation(CLASSES).iloc[:0].to_parquet(folders["scores"] / "memorisation.parquet")
+    visual = folders["classify"] / "visual"
+    _write_json(visual / "summary.json", {"modality": "visual", "status": "not applicable: classification needs at "
+                                          "least 2 classes, the data has 0", "classes": [], "notes": []})
+    _accuracy("visual").iloc[:0].to_parquet(visual / "accuracy.parquet")
+    _classify_by_class("visual").iloc[:0].to_parquet(visual / "by_class.parquet")
+    tactile = folders["classify"] / "tactile"
+    real_only = _accuracy("tactile")
+    real_only = real_only[real_only["setting"] == "real"].assign(gan_test_accuracy=np.nan)
+    _write_json(tactile / "summary.json", {
+        "modality": "tactile", "status": "ok", "classes": list(CLASSES), "counts": {"real_test": 4},
+        "settings": {"real": {"final_mean": 0.71, "interval": [0.3, 0.95], "test_images": 4}}, "gan_test": None,
+        "comparisons": [], "test_images_per_class": {c: 2 for c in CLASSES},
+        "notes": ["no generated test images of tactile: no GAN-test"]})
+    real_only.to_parquet(tactile / "accuracy.parquet")
+    by_class = _classify_by_class("tactile")
+    by_class[by_class["setting"] == "real"].to_parquet(tactile / "by_class.parquet")
     return folders
 
 
@@ -113,35 +242,82 @@ def numbers(tree) -> list:
 # ---------------------------------------------------------------- tables
 
 
-def test_ssim_tables_put_reference_levels_and_the_paper_beside_ours():
+def test_ssim_tables_put_n_intervals_and_reference_levels_beside_ours():
     set_table, aligned = ssim_tables(_by_class(aligned=True), "v2t")
     assert list(set_table["class"]) == ["denim", "felt", "(all)"]
-    assert list(set_table.columns) == ["class", "generated", "generated, nearest real", "real vs real",
-                                       "nearest neighbour", "mean image", "flat mean colour", "paper"]
-    assert set_table["real vs real"].tolist() == [0.3, 0.3, 0.3]
-    assert set_table["paper"].iloc[-1] == PAPER["colour_ssim"]["v2t"] and set_table["paper"].iloc[0] == ""
+    assert list(set_table.columns) == ["class", "n", "generated", "generated, nearest real",
+                                       "generated vs best baseline", "n real", "real vs real", "nearest neighbour",
+                                       "mean image", "flat mean colour"]
+    assert set_table["n"].tolist() == [3, 3, 6]
+    assert set_table["real vs real"].tolist() == ["0.300 [0.280, 0.320]"] * 3
+    assert set_table["generated"].iloc[-1] == "0.600 [0.580, 0.620]"
+    # 0.6 +- 0.02 against the flat colour's 0.5 +- 0.02: separated, so ranked
+    assert set_table["generated vs best baseline"].tolist() == ["above flat mean colour"] * 3
     assert "MS-SSIM" not in aligned.columns  # never computed at this size: no empty column
-    assert aligned["Colour-SSIM"].tolist() == pytest.approx([0.7] * 3)
+    assert aligned["Colour-SSIM"].tolist() == ["0.700 [0.680, 0.720]"] * 3
+    assert aligned["PSNR dB"].iloc[0] == "20.00 [19.98, 20.02]"
     # unaligned data: no aligned table at all
     assert ssim_tables(_by_class(aligned=False), "v2t")[1] is None
 
 
-def test_accuracy_table_reports_mean_and_spread_per_epoch():
-    table = accuracy_table(_accuracy("tactile"), "tactile")
-    assert table["real"].tolist() == ["0.610 ± 0.014", "0.710 ± 0.014"]
-    assert table["real+generated"].iloc[1] == "0.810 ± 0.014"
-    assert table["GAN-test (real-only classifier on generated)"].iloc[0] == "0.500 ± 0.000"
-    assert table["paper"].tolist() == ["", PAPER["accuracy"]["tactile"]]
+def test_overlapping_intervals_are_called_within_noise_not_ranked():
+    set_table, _ = ssim_tables(_by_class(aligned=True, half_width=0.08), "v2t")
+    assert set_table["generated vs best baseline"].tolist() == ["within noise of flat mean colour (intervals overlap)"] * 3
+    no_interval = _by_class(aligned=False).drop(columns=[c for c in _by_class(False) if c.endswith(("_low", "_high"))])
+    set_table, _ = ssim_tables(no_interval, "v2t")
+    assert set_table["generated"].iloc[0] == "0.600" and set_table["generated vs best baseline"].iloc[0] == (
+        "above flat mean colour (no interval)")
+
+
+def test_greyscale_data_is_labelled_ssim_not_colour_ssim():
+    set_table, aligned = ssim_tables(_by_class(aligned=True), "t2v", "SSIM")
+    assert "SSIM" in aligned.columns and "Colour-SSIM" not in aligned.columns
+    assert "grey SSIM" not in aligned.columns  # the same number on greyscale data
+    assert "flat mean colour SSIM" in aligned.columns
+
+
+def test_accuracy_table_reports_mean_spread_interval_and_the_paper_per_iteration():
+    table = accuracy_table(_accuracy("tactile"), "tactile", test_images=4, gan_images=4)
+    assert table["epoch / iteration"].tolist() == list(range(1, 11))  # our 2 epochs beside the paper's 10 iterations
+    assert table["real"].iloc[0].startswith("0.610 ± 0.014 [") and table["real"].iloc[2] == ""
+    assert table["real+generated"].iloc[1].startswith("0.810 ± 0.014 [")
+    assert table["GAN-test (real-only classifier on generated)"].iloc[0].startswith("0.500 ± 0.000 [")
+    assert table["paper real"].tolist()[:2] == ["0.7776", "0.8249"]
+    assert table["paper real+generated"].iloc[-1] == "0.9058"
+    assert accuracy_table(_accuracy("tactile"), "tactile")["real"].iloc[0] == "0.610 ± 0.014"  # no n: no interval
+
+
+def test_paper_values_are_the_published_tables():
+    assert PAPER["colour_ssim"]["v2t"] == {"cloth_types": 0.89717, "network_parameters": 0.90896,
+                                           "roi_with_noise": 0.92059, "roi_no_noise": 0.91188,
+                                           "paired_dataset": 0.90471}
+    assert PAPER["colour_ssim"]["t2v"]["cloth_types"] == 0.77279
+    assert PAPER["accuracy"]["visual"]["real"][10] == 0.9881 and PAPER["accuracy"]["tactile"]["real+generated"][1] == 0.8506
+    assert "not state how generated and real images were matched" in PAPER["caveat"]
+    assert PAPER_FILE.name == "paper.yaml" and PAPER_FILE.parent.name == "io"  # package data (pyproject io/*.yaml)
+
+
+@pytest.mark.skipif(not SHARED_PAPER.is_file(), reason="the project's transcription of the paper is not here")
+def test_paper_file_agrees_with_the_shared_transcription_number_for_number():
+    import yaml
+
+    shared = yaml.safe_load(SHARED_PAPER.read_text())
+    ours = load_paper()
+    for table in ("table_1_v2t_colour_ssim", "table_2_t2v_colour_ssim"):
+        assert ours[table] == shared[table], table
+    mine, theirs = ours["table_3_classification_accuracy"], shared["table_3_classification_accuracy"]
+    assert mine["columns"] == theirs["columns"] and mine["rows"] == theirs["rows"]
 
 
 def test_page_helper_autoescapes_html_but_not_markdown():
     table = {"caption": "a | b", "columns": ["class", "x"], "rows": [["<b>", 0.12345], ["felt", None]]}
-    chance = {"modality": "<m>", "at_chance": ["real"], "classes": 2, "table": None, "status": "ok", "notes": []}
+    chance = {"modality": "<m>", "at_chance": ["real"], "classes": 2, "tables": [], "status": "ok", "notes": []}
     context = {"title": "t", "synthetic": False} | _minimal_context(table) | {"classify": [chance]}
     page, summary = render_page("report", context)
     assert "<td>&lt;b&gt;</td><td>0.123</td>" in page and "<td>—</td>" in page
     assert "warning: the &lt;m&gt; classifier ends at chance level" in page and "<m>" not in page
     assert "| class | x |" in summary and "| <b> | 0.123 |" in summary
+    assert '<li class="warning">WARNING: &lt;v&gt;</li>' in page and "- **WARNING: <v>**" in summary
 
 
 def _minimal_context(table: dict) -> dict:
@@ -149,6 +325,8 @@ def _minimal_context(table: dict) -> dict:
     return {"dataset": {"source": "s", "path": "p"}, "ingest": {}, "pairs": {}, "run": run, "params_yaml": "",
             "directions": ["v2t"], "figures": {"losses": False, "scores": False, "grid_v2t": False,
                                                "classification": False},
+            "verdicts": [{"status": "warning", "line": "WARNING: <v>"}], "not_scored": {}, "pair_kinds": {},
+            "duplicates": {}, "modalities": [], "test_per_class": {},
             "quarantine": None, "models": table, "ms_ssim_note": None, "ssim": [], "classify": [], "timings": None}
 
 

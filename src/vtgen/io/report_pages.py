@@ -17,19 +17,34 @@ from pathlib import Path
 
 import jinja2
 import numpy as np
+import yaml
 
 TEMPLATES = Path(__file__).resolve().parent / "templates"
 
-# The paper's published figures. Only the ranges below could be checked offline (the project
-# guide's summary of Lee, Bollegala & Luo, ICRA 2019); per-row values of its tables are not
-# reproduced here rather than guessed.
-PAPER = {
-    "citation": "Lee, Bollegala and Luo, \"Touching to See and Seeing to Feel\", ICRA 2019",
-    "note": "ranges as summarised in the project guide; the per-row values of the paper's tables could not be "
-            "checked offline and are not guessed",
-    "colour_ssim": {"v2t": "about 0.90", "t2v": "0.77 (cloth types) to 0.91"},
-    "accuracy": {"visual": "0.96 to 0.99", "tactile": "0.78 to 0.91"},
-}
+PAPER_FILE = Path(__file__).resolve().parent / "paper.yaml"
+PAPER_ROWS = {"cloth_types": "cloth types", "network_parameters": "network parameters",
+              "roi_with_noise": "ROI with noise", "roi_no_noise": "ROI without noise",
+              "paired_dataset": "paired dataset"}
+
+
+def load_paper(path: str | Path = PAPER_FILE) -> dict:
+    """The paper's Tables I-III as printed (``paper.yaml``), plus views for the pages: ``colour_ssim``
+    ({direction: {row: value}}), ``accuracy`` ({modality: {setting: {iteration: value}}}) and ``note``."""
+    raw = yaml.safe_load(Path(path).read_text())
+    table = raw["table_3_classification_accuracy"]
+    columns = table["columns"]
+    accuracy: dict = {"visual": {"real": {}, "real+generated": {}}, "tactile": {"real": {}, "real+generated": {}}}
+    for row in table["rows"]:
+        values = dict(zip(columns, row))
+        for modality in accuracy:
+            accuracy[modality]["real"][int(values["iteration"])] = values[f"{modality}_real"]
+            accuracy[modality]["real+generated"][int(values["iteration"])] = values[f"{modality}_real_plus_generated"]
+    return {**raw, "note": "values of Tables I-III as printed; " + raw["caveat"][:1].lower() + raw["caveat"][1:],
+            "colour_ssim": {"v2t": dict(raw["table_1_v2t_colour_ssim"]), "t2v": dict(raw["table_2_t2v_colour_ssim"])},
+            "accuracy": accuracy}
+
+
+PAPER = load_paper()
 
 
 def fmt(value, digits: int = 3) -> str:
@@ -43,6 +58,24 @@ def fmt(value, digits: int = 3) -> str:
             return "inf" if value > 0 else "-inf"
         return f"{value:.{digits}f}"
     return str(value)
+
+
+def interval_cell(value, low=None, high=None, digits: int = 3) -> str:
+    """``value [low, high]`` as text; the value alone when the interval is unknown, an em dash for no value."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "—"
+    text = fmt(float(value), digits)
+    if low is None or high is None or any(isinstance(v, float) and math.isnan(v) for v in (low, high)):
+        return text
+    return f"{text} [{fmt(float(low), digits)}, {fmt(float(high), digits)}]"
+
+
+def overlap(a: tuple, b: tuple) -> bool | None:
+    """True when the intervals ``a`` and ``b`` (low, high) overlap, None when either is unknown."""
+    values = [v for v in (*a, *b)]
+    if any(v is None or (isinstance(v, float) and math.isnan(v)) for v in values):
+        return None
+    return a[0] <= b[1] and b[0] <= a[1]
 
 
 def md_cell(text) -> str:

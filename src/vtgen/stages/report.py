@@ -12,10 +12,15 @@ writes into ``out_dir``:
   writes into its own output folder;
 * ``plots/training.csv``: every model's dvclive losses in long format (step, model, losses).
 
-The page holds data provenance (synthetic or real, counts, quarantined inputs), the parameters and
-code version, the shape of the paper's Table I (V2T), Table II (T2V) and Table III (classification
-per iteration) with the paper's published ranges and the reference levels, image grids per class
-and direction (the generate stage's ``preview.png``), training-loss curves and stage timings.
+The page opens with the verdicts: one line per direction and metric family (the score stage's
+``verdicts``; WARNING where generated data does not beat a trivial baseline), the classification
+comparisons, and a plain line for every direction that was not scored and why. Then: data provenance
+(synthetic or real, counts, duplicates, pair kinds per direction and split, dropped pairs, per-class
+test n), the parameters and code version, the distribution metrics and the memorisation check per
+direction, the paper's Table I (V2T), Table II (T2V) and Table III (classification per iteration)
+with this run's numbers, their n and 95% intervals (comparisons whose intervals overlap are called
+"within noise", never ranked), the paper's printed values (``vtgen/io/paper.yaml``) row for row
+where the experiment matches, image grids, training-loss curves and stage timings.
 """
 
 from __future__ import annotations
@@ -39,15 +44,36 @@ import yaml  # noqa: E402
 
 from vtgen.core.domain import DIRECTIONS, MODALITIES  # noqa: E402
 from vtgen.io.provenance import code_version  # noqa: E402
-from vtgen.io.report_pages import PAPER, plain, read_json, render_page, table_view, write_json  # noqa: E402
-from vtgen.io.tables import QUARANTINE_COLUMNS, candidate_label, read_table  # noqa: E402
+from vtgen.io.report_pages import (PAPER, PAPER_ROWS, interval_cell, overlap, plain, read_json, render_page,  # noqa: E402
+                                   table_view, write_json)
+from vtgen.io.tables import PAIR_KINDS, QUARANTINE_COLUMNS, candidate_label, read_table  # noqa: E402
 
 SETTING_ORDER = ["real", "real+generated", "low-data real", "low-data real+generated"]
 REFERENCE_LEVELS = {"real_train": "real_vs_real", "nearest_neighbour": "nearest_neighbour",
                     "mean_image": "mean_image", "flat_mean_colour": "flat_mean_colour"}
-BY_CLASS_NEEDS = ["direction", "scope", "candidate", "class", "colour_ssim", "grey_ssim", "psnr", "ms_ssim",
-                  "set_colour_ssim", "nearest_real_colour_ssim", "images"]
+BY_CLASS_KEYS = ["direction", "scope", "candidate", "class"]
+BY_CLASS_NEEDS = [*BY_CLASS_KEYS, "colour_ssim", "grey_ssim", "psnr", "ms_ssim", "set_colour_ssim",
+                  "nearest_real_colour_ssim", "images"]
 ACCURACY_NEEDS = ["modality", "setting", "seed", "epoch", "test_accuracy", "gan_test_accuracy"]
+CLASSIFY_BY_CLASS_NEEDS = ["modality", "setting", "class", "images", "accuracy", "low", "high", "seeds"]
+DISTRIBUTION_NEEDS = ["direction", "scope", "class", "candidate", "view", "metric", "value", "low", "high", "n",
+                      "n_reference"]
+MEMORISATION_NEEDS = ["direction", "class", "view", "candidate", "rate", "nearest_is_train_share", "n", "n_train"]
+PAIR_NEEDS = ["direction", "split", "class", "aligned"]
+GAN_TEST = "GAN-test"
+SSIM_BASELINES = ("nearest_neighbour", "mean_image", "flat_mean_colour")
+DISTRIBUTION_BASELINES = ("nearest_neighbour", "mean_image", "flat_mean_colour", "blurred_real")
+# (metric, view) columns of the distribution tables, in order; label; True when lower is better
+DISTRIBUTION_SHOWN = [("kid", "classifier"), ("fid", "classifier"), ("two_sample", "classifier"),
+                      ("precision", "classifier"), ("recall", "classifier"), ("coverage", "classifier"),
+                      ("kid", "random"), ("fid", "random"), ("two_sample", "random"), ("spectrum", "pixels")]
+METRIC_LABELS = {"kid": "KID", "fid": "FID", "two_sample": "two-sample acc.", "precision": "precision",
+                 "recall": "recall", "density": "density", "coverage": "coverage", "spectrum": "spectrum dist."}
+LOWER_IS_BETTER = {"kid": True, "fid": True, "spectrum": True, "precision": False, "recall": False,
+                   "density": False, "coverage": False}
+# metrics.json: (metric, view) per direction, each with generated, real_heldout and best_baseline
+HEADLINE_DISTRIBUTION = [("kid", "classifier"), ("fid", "classifier"), ("two_sample", "classifier"),
+                         ("spectrum", "pixels")]
 TRAINING_COLUMNS = ["step", "model", "loss_d", "loss_g_gan", "loss_g_l1"]
 FIGURES = ("losses", "scores", "grid_v2t", "grid_t2v", "classification", "timings")
 
@@ -102,7 +128,35 @@ def classification(classify_dir: Path) -> dict:
         folder = classify_dir / modality
         summary = read_json(folder / "summary.json")
         accuracy = read_table(folder / "accuracy.parquet", ACCURACY_NEEDS, f"the classify stage's {modality} table")
-        found[modality] = {"summary": summary, "accuracy": accuracy, "at_chance": at_chance(summary, accuracy)}
+        final = _optional_columns(folder / "by_class.parquet", ["modality", "setting", "class"], CLASSIFY_BY_CLASS_NEEDS,
+                                  f"the classify stage's {modality} per-class table")
+        found[modality] = {"summary": summary, "accuracy": accuracy, "by_class": final,
+                           "at_chance": at_chance(summary, accuracy)}
+    return found
+
+
+def _optional_columns(path: Path, keys: list[str], needs: list[str], what: str) -> pd.DataFrame:
+    """A stage table that may be empty with its key columns only (a stage with nothing to do); when it
+    has rows, every column of ``needs`` must be there."""
+    table = read_table(path, keys, what)
+    return read_table(path, needs, what) if len(table) else table.reindex(columns=needs)
+
+
+def _split_order(split: str) -> tuple:
+    order = ("train", "val", "test")
+    return (order.index(split) if split in order else 9, split)
+
+
+def pair_kinds(pairs_dir: Path) -> dict:
+    """{direction: {split: {kind: pairs}}} from the pair tables (kinds pixel, name, class; tables without a
+    ``pair_kind`` column count aligned pairs as pixel and the rest as class)."""
+    found = {}
+    for direction in DIRECTIONS:
+        table = read_table(pairs_dir / f"{direction}.parquet", PAIR_NEEDS, f"the pairs stage's {direction} table")
+        kind = table["pair_kind"] if "pair_kind" in table else np.where(table["aligned"], "pixel", "class")
+        counts = table.assign(kind=kind).groupby(["split", "kind"]).size()
+        found[direction] = {split: {k: int(counts[(split, k)]) for k in PAIR_KINDS if (split, k) in counts.index}
+                            for split in sorted(set(table["split"]), key=_split_order)}
     return found
 
 
@@ -155,10 +209,82 @@ def collect(params: dict, inputs: ReportInputs) -> dict:
         "pairs": read_json(inputs.pairs / "summary.json"),
         "run": run_facts(params), "params_yaml": yaml.safe_dump(params, sort_keys=False),
         "models": runs, "training": training_curves(runs),
+        "pair_kinds": pair_kinds(inputs.pairs),
         "score_summary": read_json(inputs.scores / "summary.json"),
-        "by_class": read_table(inputs.scores / "by_class.parquet", BY_CLASS_NEEDS, "the score stage's by_class table"),
+        "by_class": _optional_columns(inputs.scores / "by_class.parquet", BY_CLASS_KEYS, BY_CLASS_NEEDS,
+                                      "the score stage's by_class table"),
+        "distribution": read_table(inputs.scores / "distribution.parquet", DISTRIBUTION_NEEDS,
+                                   "the score stage's distribution table"),
+        "memorisation": read_table(inputs.scores / "memorisation.parquet", MEMORISATION_NEEDS,
+                                   "the score stage's memorisation table"),
         "classify": classification(inputs.classify), "timings": stage_timings(inputs, runs),
     }
+
+
+# ---------------------------------------------------------------- verdicts
+
+
+def translation_reason(pairs: dict, direction: str) -> str | None:
+    """The reason the pairs stage recorded (its ``translation`` entry, overall or per direction) for
+    ``direction`` having no translation, or None when it recorded none."""
+    entry = pairs.get("translation")
+    if isinstance(entry, dict) and isinstance(entry.get(direction), (dict, str)):
+        entry = entry[direction]
+    if isinstance(entry, dict):
+        return entry.get("reason") or None
+    return entry or None if isinstance(entry, str) else None
+
+
+def not_scored(data: dict) -> dict[str, str]:
+    """{direction: why it has no scores} for the directions without scores (a one-modality dataset:
+    the pairs stage's reason first, then the train stage's status, then the score stage's)."""
+    recorded = data["score_summary"].get("not_scored") or {}
+    scored = set(data["by_class"]["direction"])
+    result = {}
+    for direction in DIRECTIONS:
+        if direction in scored and direction not in recorded:
+            continue
+        statuses = [str(r["status"]).removeprefix("not applicable: ") for r in data["models"]
+                    if r["direction"] == direction and str(r.get("status", "ok")).startswith("not applicable")]
+        result[direction] = (translation_reason(data["pairs"], direction) or (statuses[0] if statuses else None)
+                             or recorded.get(direction) or "the score stage has no scores for this direction")
+    return result
+
+
+VERDICT_MARKS = {"warning": "WARNING: ", "unresolved": "", "ok": "", "not scored": ""}
+
+
+def verdict_lines(data: dict) -> list[dict]:
+    """The lines the report opens with: ``{"status", "line"}`` per direction and metric family (the
+    score stage's verdicts), per classification comparison, and per direction or modality not scored."""
+    found, skipped, lines = data["score_summary"].get("verdicts") or [], not_scored(data), []
+
+    def add(status: str, text: str) -> None:
+        lines.append({"status": status, "line": VERDICT_MARKS.get(status, "") + text})
+
+    for direction in DIRECTIONS:
+        if direction in skipped:
+            add("not scored", f"{direction.upper()}: not scored: {skipped[direction]}")
+            continue
+        mine = [v for v in found if v.get("direction") == direction]
+        if not mine:
+            add("unresolved", f"{direction.upper()}: no verdict (the score stage's summary.json has none for it)")
+        for verdict in mine:
+            add(verdict.get("status", "ok"), verdict["text"])
+    for modality, entry in data["classify"].items():
+        summary = entry["summary"]
+        if summary.get("status", "ok") != "ok":
+            add("not scored", f"{modality} classification: {summary['status']}")
+            continue
+        n = (summary.get("counts") or {}).get("real_test", "?")
+        for item in summary.get("comparisons") or []:
+            add("unresolved" if item.get("overlap") else "ok",
+                f"{modality} classification, {item['setting']} against {item['against']}: accuracy "
+                f"{item['difference']:+.3f}, {item['verdict']} (n = {n} test images)")
+        for setting in entry["at_chance"]:
+            add("warning", f"{modality} classification: '{setting}' ends at chance level; its accuracies say nothing "
+                           f"about the generated data")
+    return lines
 
 
 # ---------------------------------------------------------------- headline numbers (metrics.json)
@@ -171,6 +297,10 @@ def _number(value) -> float | None:
 
 def _compact(values: dict) -> dict:
     return {k: v for k, v in values.items() if v is not None and v != {}}
+
+
+def _finite(value) -> bool:
+    return value is not None and not pd.isna(value)
 
 
 def ssim_headline(by_class: pd.DataFrame, direction: str) -> dict:
@@ -192,8 +322,41 @@ def ssim_headline(by_class: pd.DataFrame, direction: str) -> dict:
     return _compact(result)
 
 
+def best_baseline(metric: str, values: dict[str, float]) -> tuple[str, float] | None:
+    """The best of the trivial baselines ``values`` for ``metric`` (two-sample accuracy: closest to 0.5)."""
+    finite = {name: value for name, value in values.items() if _finite(value)}
+    if not finite:
+        return None
+    if metric == "two_sample":
+        return min(finite.items(), key=lambda item: abs(item[1] - 0.5))
+    if LOWER_IS_BETTER.get(metric, True):
+        return min(finite.items(), key=lambda item: item[1])
+    return max(finite.items(), key=lambda item: item[1])
+
+
+def distribution_headline(distribution: pd.DataFrame, memorisation: pd.DataFrame, direction: str) -> dict:
+    """Per HEADLINE_DISTRIBUTION metric over all classes: generated (pooled model), real held-out and the
+    best trivial baseline; and the memorisation rate (classifier features) of generated and real held-out."""
+    rows = distribution[(distribution["direction"] == direction) & (distribution["class"] == "(all)")]
+    result = {}
+    for metric, view in HEADLINE_DISTRIBUTION:
+        part = rows[(rows["metric"] == metric) & (rows["view"] == view)]
+        values = {(c, s): v for c, s, v in zip(part["candidate"], part["scope"], part["value"])}
+        generated = values.get(("generated", "all"),
+                               next((v for (c, _), v in sorted(values.items()) if c == "generated"), None))
+        best = best_baseline(metric, {c: values[(c, "-")] for c in DISTRIBUTION_BASELINES if (c, "-") in values})
+        result[f"{metric}_{view}"] = _compact({"generated": _number(generated),
+                                               "real_heldout": _number(values.get(("real_heldout", "-"))),
+                                               "best_baseline": _number(best[1]) if best else None})
+    mem = memorisation[(memorisation["direction"] == direction) & (memorisation["class"] == "(all)")
+                       & (memorisation["view"] == "classifier")].set_index("candidate")["rate"]
+    result["memorisation_classifier"] = _compact({c: _number(mem.get(c)) for c in ("generated", "real_heldout")})
+    return _compact(result)
+
+
 def classify_headline(entry: dict) -> dict:
-    """Mean final-epoch test accuracy over seeds per setting, the GAN-test and the test-set size."""
+    """Mean final-epoch test accuracy over seeds per setting, the GAN-test, the test-set size and the
+    accuracy gained from generated images per comparison (``gain_from_generated``)."""
     table, summary = entry["accuracy"], entry["summary"]
     if summary.get("status", "ok") != "ok" or table.empty:
         return {}
@@ -203,85 +366,283 @@ def classify_headline(entry: dict) -> dict:
     result["gan_test"] = _number(gan.mean()) if len(gan) else None
     result["seeds"] = int(last["seed"].nunique())
     result["real_test_images"] = (summary.get("counts") or {}).get("real_test")
+    result["gain_from_generated"] = _compact({c["setting"]: _number(c["difference"])
+                                              for c in summary.get("comparisons") or []})
     return _compact(result)
 
 
 def headline_metrics(data: dict) -> dict:
-    """The numbers for ``dvc metrics``: Colour-SSIM per direction, accuracy per modality and counts; no
-    timings, dates, versions or paths."""
-    metrics = {d: ssim_headline(data["by_class"], d) for d in DIRECTIONS}
+    """The numbers for ``dvc metrics``: SSIM levels and distribution metrics per direction, accuracy per
+    modality and counts; no timings, dates, versions or paths."""
+    metrics = {d: _compact(ssim_headline(data["by_class"], d)
+                           | distribution_headline(data["distribution"], data["memorisation"], d))
+               for d in DIRECTIONS}
+    metrics = _compact(metrics)
     metrics["classify"] = _compact({m: classify_headline(e) for m, e in data["classify"].items()})
     ingest = data["ingest"]
     metrics["counts"] = _compact({"classes": len(ingest.get("classes", [])), "images_kept": ingest.get("kept"),
-                                  "quarantined": ingest.get("quarantined"), "models": len(data["models"])})
+                                  "quarantined": ingest.get("quarantined"),
+                                  "models": sum(1 for r in data["models"] if str(r.get("status", "ok")) == "ok")})
     return metrics
 
 
 # ---------------------------------------------------------------- tables
 
 
-def ssim_tables(by_class: pd.DataFrame, direction: str) -> tuple[pd.DataFrame, pd.DataFrame | None]:
-    """The paper-shaped tables of one direction: set-to-set Colour-SSIM (the paper's protocol) and,
-    when the data has ground truth, the aligned scores; one row per class plus ``(all)``."""
+def ssim_name(summary: dict, direction: str) -> str:
+    """"SSIM" for greyscale data (the score stage's ``ssim_name``), else "Colour-SSIM"."""
+    return ((summary.get("distribution") or {}).get(direction) or {}).get("ssim_name", "Colour-SSIM")
+
+
+def _records(rows: pd.DataFrame) -> dict:
+    return {(r["candidate"], r["scope"], r["class"]): r for r in rows.to_dict("records")}
+
+
+def _cell(record: dict | None, metric: str, digits: int = 3) -> str:
+    """A by_class mean with its 95% interval, or an em dash."""
+    if record is None:
+        return "—"
+    return interval_cell(record.get(metric), record.get(f"{metric}_low"), record.get(f"{metric}_high"), digits)
+
+
+def _against(record: dict | None, references: dict[str, dict], metric: str, label: str = "") -> str:
+    """Generated against the best of ``references`` (higher is better): above or below only when the 95%
+    intervals do not overlap, otherwise "within noise"."""
+    references = {c: r for c, r in references.items() if r is not None and _finite(r.get(metric))}
+    if record is None or not references or not _finite(record.get(metric)):
+        return "—"
+    name, best = max(references.items(), key=lambda item: item[1][metric])
+    name = label or name.replace("_", " ")
+    same = overlap((record.get(f"{metric}_low"), record.get(f"{metric}_high")),
+                   (best.get(f"{metric}_low"), best.get(f"{metric}_high")))
+    if same:
+        return f"within noise of {name} (intervals overlap)"
+    word = "above" if record[metric] > best[metric] else "below"
+    return f"{word} {name}" + (" (no interval)" if same is None else "")
+
+
+def ssim_tables(by_class: pd.DataFrame, direction: str, name: str = "Colour-SSIM"
+                ) -> tuple[pd.DataFrame, pd.DataFrame | None]:
+    """The paper-shaped tables of one direction: set-to-set SSIM (the paper's protocol) and, when the data
+    has ground truth, the aligned scores; one row per class plus ``(all)``; every score with its 95%
+    interval, n per row and generated against the best trivial baseline ("within noise" when the
+    intervals overlap)."""
     rows = by_class[by_class["direction"] == direction]
     classes = sorted(c for c in rows["class"].unique() if c != "(all)") + ["(all)"]
-    scopes = sorted(rows.loc[rows["candidate"] == "generated", "scope"].unique())
+    scopes = sorted(rows.loc[rows["candidate"] == "generated", "scope"].unique(), key=lambda s: (s != "all", s))
+    found = _records(rows)
 
-    def column(candidate: str, metric: str, scope: str = "-") -> list:
-        part = rows[(rows["candidate"] == candidate) & (rows["scope"] == scope)].set_index("class")[metric]
-        return [part.get(c, np.nan) for c in classes]
+    def get(candidate: str, cls: str, scope: str = "-") -> dict | None:
+        return found.get((candidate, scope, cls))
 
     def suffix(scope: str) -> str:
         return "" if len(scopes) == 1 else f" [{scope}]"
 
+    def n(record: dict | None) -> int | str:
+        return "—" if record is None else int(record["images"])
+
     set_table = pd.DataFrame({"class": classes})
     for scope in scopes:
-        set_table[f"generated{suffix(scope)}"] = column("generated", "set_colour_ssim", scope)
-        set_table[f"generated, nearest real{suffix(scope)}"] = column("generated", "nearest_real_colour_ssim", scope)
-    set_table["real vs real"] = column("real_train", "set_colour_ssim")
-    for candidate in ("nearest_neighbour", "mean_image", "flat_mean_colour"):
-        set_table[candidate.replace("_", " ")] = column(candidate, "set_colour_ssim")
-    set_table["paper"] = ["" for _ in classes[:-1]] + [PAPER["colour_ssim"][direction]]
+        generated = [get("generated", c, scope) for c in classes]
+        set_table[f"n{suffix(scope)}"] = [n(r) for r in generated]
+        set_table[f"generated{suffix(scope)}"] = [_cell(r, "set_colour_ssim") for r in generated]
+        set_table[f"generated, nearest real{suffix(scope)}"] = [_cell(r, "nearest_real_colour_ssim") for r in generated]
+        set_table[f"generated vs best baseline{suffix(scope)}"] = [
+            _against(r, {b: get(b, c) for b in SSIM_BASELINES}, "set_colour_ssim") for r, c in zip(generated, classes)]
+    set_table["n real"] = [n(get("real_train", c)) for c in classes]
+    set_table["real vs real"] = [_cell(get("real_train", c), "set_colour_ssim") for c in classes]
+    for candidate in SSIM_BASELINES:
+        set_table[candidate.replace("_", " ")] = [_cell(get(candidate, c), "set_colour_ssim") for c in classes]
     if rows.loc[rows["candidate"] == "generated", "colour_ssim"].notna().sum() == 0:
         return set_table, None
     aligned = pd.DataFrame({"class": classes})
+    metrics = [("colour_ssim", name, 3), ("grey_ssim", "grey SSIM", 3), ("psnr", "PSNR dB", 2), ("ms_ssim", "MS-SSIM", 3)]
     for scope in scopes:
-        for metric, label in (("colour_ssim", "Colour-SSIM"), ("grey_ssim", "grey SSIM"), ("psnr", "PSNR dB"),
-                              ("ms_ssim", "MS-SSIM")):
-            values = column("generated", metric, scope)
-            if metric != "ms_ssim" or np.isfinite(np.asarray(values, dtype=float)).any():
-                aligned[f"{label}{suffix(scope)}"] = values
-    for candidate in ("nearest_neighbour", "mean_image", "flat_mean_colour"):
-        aligned[f"{candidate.replace('_', ' ')} Colour-SSIM"] = column(candidate, "colour_ssim")
+        generated = [get("generated", c, scope) for c in classes]
+        aligned[f"n{suffix(scope)}"] = [n(r) for r in generated]
+        for metric, label, digits in metrics:
+            if metric == "grey_ssim" and name == "SSIM":
+                continue  # greyscale data: the same number as the SSIM column
+            if metric != "ms_ssim" or any(r is not None and _finite(r.get(metric)) for r in generated):
+                aligned[f"{label}{suffix(scope)}"] = [_cell(r, metric, digits) for r in generated]
+        aligned[f"vs best baseline{suffix(scope)}"] = [
+            _against(r, {b: get(b, c) for b in SSIM_BASELINES}, "colour_ssim") for r, c in zip(generated, classes)]
+    for candidate in SSIM_BASELINES:
+        aligned[f"{candidate.replace('_', ' ')} {name}"] = [_cell(get(candidate, c), "colour_ssim") for c in classes]
     return set_table, aligned
 
 
-def _mean_std_cells(values: pd.DataFrame, column: str, epochs) -> list[str]:
+STUDY_RUNS = {"cloth_types": "cloth_types", "network_parameters": "larger_batch, no_l1, more_iterations, more_images, "
+              "double_resolution", "roi_with_noise": "roi_noise", "roi_no_noise": "roi_noise", "paired_dataset": "round_trip"}
+
+
+def paper_matches(params: dict, by_class: pd.DataFrame, direction: str) -> dict[str, tuple[dict, str]]:
+    """{paper row: (this run's set-to-set record, what matches)} for the rows of the paper's Table I/II
+    that this run's models reproduce: ``cloth_types`` by per-class models, the ROI rows by the pooled model
+    when the tactile frames were cut to a region (``roi.tactile_box`` not ``full``), with or without noise."""
+    rows = by_class[(by_class["direction"] == direction) & (by_class["candidate"] == "generated")]
+    overall = {r["scope"]: r for r in rows[rows["class"] == "(all)"].to_dict("records")}
+    found = {}
+    per_class = [r for scope, r in overall.items() if scope not in ("all", "-") and _finite(r.get("set_colour_ssim"))]
+    if per_class:
+        images = sum(int(r["images"]) for r in per_class)
+        mean = sum(r["set_colour_ssim"] * int(r["images"]) for r in per_class) / images
+        found["cloth_types"] = ({"set_colour_ssim": mean, "images": images},
+                                f"{len(per_class)} per-class models, mean over their images (no pooled interval)")
+    preset = (params.get("presets") or {}).get((params.get("translation") or {}).get("preset"), {}) or {}
+    if direction == "v2t" and "all" in overall and (params.get("roi") or {}).get("tactile_box", "full") != "full":
+        row = "roi_with_noise" if preset.get("noise") else "roi_no_noise"
+        found[row] = (overall["all"], f"pooled model on the tactile ROI, noise {'on' if preset.get('noise') else 'off'}")
+    return found
+
+
+def paper_table(params: dict, by_class: pd.DataFrame, direction: str, name: str) -> pd.DataFrame:
+    """The paper's Table I (V2T) or II (T2V) row for row, with this run's set-to-set score, n and 95%
+    interval where this run's experiment matches the row."""
+    matches = paper_matches(params, by_class, direction)
+    rows = []
+    for key, value in PAPER["colour_ssim"][direction].items():
+        record, what = matches.get(key, (None, f"not run by the main job (studies: {STUDY_RUNS[key]})"))
+        rows.append({"paper row": PAPER_ROWS[key], "paper Colour-SSIM": f"{value:.5f}",
+                     f"this run, set-to-set {name}": _cell(record, "set_colour_ssim"),
+                     "n": "—" if record is None else int(record["images"]), "experiment": what})
+    return pd.DataFrame(rows)
+
+
+def _wilson(rate: float, count: int) -> tuple[float, float]:
+    from vtgen.core.classifier import wilson_interval  # torch: imported only when a table needs it
+
+    return wilson_interval(rate, count)
+
+
+def _mean_std_cells(values: pd.DataFrame, column: str, epochs, count: int | None) -> list[str]:
     stats = values.groupby("epoch")[column].agg(["mean", "std"])
-    return [f"{stats.loc[e, 'mean']:.3f} ± {np.nan_to_num(stats.loc[e, 'std']):.3f}" if e in stats.index else ""
-            for e in epochs]
+    cells = []
+    for epoch in epochs:
+        if epoch not in stats.index:
+            cells.append("")
+            continue
+        mean = stats.loc[epoch, "mean"]
+        text = f"{mean:.3f} ± {np.nan_to_num(stats.loc[epoch, 'std']):.3f}"
+        if count:
+            low, high = _wilson(mean, count)
+            text += f" [{low:.3f}, {high:.3f}]"
+        cells.append(text)
+    return cells
 
 
-def accuracy_table(accuracy: pd.DataFrame, modality: str) -> pd.DataFrame:
-    """Table III shape: test accuracy after each epoch (mean ± std over seeds) per setting, and the GAN-test."""
+def accuracy_table(accuracy: pd.DataFrame, modality: str, test_images: int | None = None,
+                   gan_images: int | None = None) -> pd.DataFrame:
+    """Table III shape: test accuracy after each epoch (mean ± std over seeds, and the 95% Wilson interval
+    of the mean on ``test_images``) per setting and the GAN-test (on ``gan_images``), beside the paper's
+    value at the same iteration."""
     part = accuracy[accuracy["modality"] == modality]
-    table = pd.DataFrame({"epoch": sorted(part["epoch"].unique())})
+    paper = PAPER["accuracy"].get(modality, {})
+    iterations = sorted(set(part["epoch"]) | {i for values in paper.values() for i in values})
+    table = pd.DataFrame({"epoch / iteration": iterations})
     for setting in [s for s in SETTING_ORDER if s in set(part["setting"])]:
-        table[setting] = _mean_std_cells(part[part["setting"] == setting], "test_accuracy", table["epoch"])
+        table[setting] = _mean_std_cells(part[part["setting"] == setting], "test_accuracy", iterations, test_images)
     gan = part[(part["setting"] == "real") & part["gan_test_accuracy"].notna()]
     if not gan.empty:
         table["GAN-test (real-only classifier on generated)"] = _mean_std_cells(gan, "gan_test_accuracy",
-                                                                                table["epoch"])
-    table["paper"] = [""] * (len(table) - 1) + [PAPER["accuracy"][modality]]
+                                                                                iterations, gan_images)
+    for setting, values in paper.items():
+        table[f"paper {setting}"] = [f"{values[i]:.4f}" if i in values else "" for i in iterations]
     return table
 
 
+def final_accuracy_table(final: pd.DataFrame) -> pd.DataFrame:
+    """Final-epoch accuracy per class and setting (mean over seeds) with its 95% Wilson interval and n."""
+    classes = sorted(c for c in final["class"].unique() if c != "(all)") + ["(all)"]
+    found = {(r["setting"], r["class"]): r for r in final.to_dict("records")}
+    settings = [s for s in SETTING_ORDER if s in set(final["setting"])]
+    table = pd.DataFrame({"class": classes})
+    table["n real test"] = [found[(settings[0], c)]["images"] if settings and (settings[0], c) in found else "—"
+                            for c in classes]
+    for setting in settings + ([GAN_TEST] if GAN_TEST in set(final["setting"]) else []):
+        if setting == GAN_TEST:
+            table["n generated test"] = [found[(setting, c)]["images"] if (setting, c) in found else "—" for c in classes]
+        table[setting] = [interval_cell(found[(setting, c)]["accuracy"], found[(setting, c)]["low"],
+                                        found[(setting, c)]["high"]) if (setting, c) in found else "—" for c in classes]
+    return table
+
+
+def comparison_table(summary: dict) -> pd.DataFrame | None:
+    """With against without generated images: both final accuracies with 95% intervals, the difference
+    and the classify stage's verdict ("within noise" when the intervals overlap)."""
+    settings, n = summary.get("settings") or {}, (summary.get("counts") or {}).get("real_test", "—")
+    rows = []
+    for item in summary.get("comparisons") or []:
+        a, b = settings.get(item["setting"], {}), settings.get(item["against"], {})
+        rows.append({"setting": item["setting"],
+                     "accuracy [95%]": interval_cell(a.get("final_mean"), *(a.get("interval") or (None, None))),
+                     "against": item["against"],
+                     "against: accuracy [95%]": interval_cell(b.get("final_mean"), *(b.get("interval") or (None, None))),
+                     "difference": f"{item['difference']:+.3f}", "n test": n, "verdict": item["verdict"]})
+    return pd.DataFrame(rows) if rows else None
+
+
+METRIC_DIGITS = {"kid": 4, "fid": 2, "spectrum": 4}
+
+
+def _candidate_order(candidate: str, scope: str) -> tuple:
+    order = ["generated", "real_heldout", *DISTRIBUTION_BASELINES]
+    return (order.index(candidate) if candidate in order else 9, scope != "all", candidate, scope)
+
+
+def distribution_table(distribution: pd.DataFrame, direction: str, classes=("(all)",)) -> pd.DataFrame | None:
+    """Rows: candidates (generated first, then real held-out, then the baselines), per class in ``classes``;
+    columns: n, n of the reference half and each DISTRIBUTION_SHOWN metric (value [95% interval] where
+    the metric has one)."""
+    rows = distribution[(distribution["direction"] == direction) & distribution["class"].isin(classes)]
+    if rows.empty:
+        return None
+    shown = [(m, v) for m, v in DISTRIBUTION_SHOWN if ((rows["metric"] == m) & (rows["view"] == v)).any()]
+    out = []
+    for cls in classes:
+        part = rows[rows["class"] == cls]
+        keys = sorted({(c, s) for c, s in zip(part["candidate"], part["scope"])}, key=lambda k: _candidate_order(*k))
+        for candidate, scope in keys:
+            mine = part[(part["candidate"] == candidate) & (part["scope"] == scope)]
+            record = {"class": cls} if len(classes) > 1 else {}
+            record |= {"candidate": candidate_label(candidate, scope).replace("_", " "), "n": int(mine["n"].max()),
+                       "n ref": int(mine["n_reference"].max())}
+            for metric, view in shown:
+                value = mine[(mine["metric"] == metric) & (mine["view"] == view)]
+                record[f"{METRIC_LABELS[metric]} ({view})"] = "—" if value.empty else interval_cell(
+                    value["value"].iloc[0], value["low"].iloc[0], value["high"].iloc[0], METRIC_DIGITS.get(metric, 3))
+            out.append(record)
+    return pd.DataFrame(out)
+
+
+def memorisation_table(memorisation: pd.DataFrame, direction: str) -> pd.DataFrame | None:
+    """Per feature view over all classes: the share of generated and of real held-out test images closer to
+    a training image than to any held-out image, each with n and a 95% Wilson interval; generated is read
+    as above or below real only when the intervals do not overlap."""
+    part = memorisation[(memorisation["direction"] == direction) & (memorisation["class"] == "(all)")]
+    rows = []
+    for view in sorted(set(part["view"]), key=lambda v: (["classifier", "random", "pixels"] + [v]).index(v)):
+        pair = part[part["view"] == view].set_index("candidate")
+        if not {"generated", "real_heldout"} <= set(pair.index):
+            continue
+        gen, real = pair.loc["generated"], pair.loc["real_heldout"]
+        gen_interval, real_interval = _wilson(gen["rate"], int(gen["n"])), _wilson(real["rate"], int(real["n"]))
+        same = overlap(gen_interval, real_interval)
+        reading = ("within noise of real held-out (intervals overlap)" if same
+                   else "above real held-out" if gen["rate"] > real["rate"] else "below real held-out")
+        rows.append({"view": view, "generated rate [95%]": interval_cell(gen["rate"], *gen_interval),
+                     "n generated": int(gen["n"]), "real held-out rate [95%]": interval_cell(real["rate"], *real_interval),
+                     "n real": int(real["n"]), "n train": int(gen["n_train"]), "reading": reading})
+    return pd.DataFrame(rows) if rows else None
+
+
 def models_table(runs: list[dict]) -> pd.DataFrame:
-    """One row per trained generator from its train.json."""
+    """One row per model folder from its train.json (a direction without pairs: its status, no model)."""
     return pd.DataFrame([{
-        "model": f"{r['direction']}/{r['scope']}", "preset": r.get("preset"), "size": r["settings"]["size"],
-        "iterations": r["steps"], "wall s": r.get("wall_seconds"), "s/iteration": r.get("seconds_per_iteration"),
-        "final val L1": r.get("final_val_l1"), "device": r.get("device"), "precision": r.get("precision"),
+        "model": f"{r['direction']}/{r['scope']}", "status": r.get("status", "ok"), "preset": r.get("preset"),
+        "size": (r.get("settings") or {}).get("size"), "iterations": r.get("steps"), "wall s": r.get("wall_seconds"),
+        "s/iteration": r.get("seconds_per_iteration"), "final val L1": r.get("final_val_l1"),
+        "device": r.get("device"), "precision": r.get("precision"),
     } for r in runs])
 
 
@@ -313,11 +674,13 @@ def loss_figure(training: pd.DataFrame, models: list[str], path: Path, max_model
     _save_figure(fig, path)
 
 
-def scores_figure(by_class: pd.DataFrame, path: Path) -> None:
-    """Set-to-set and aligned Colour-SSIM of every candidate over all classes, one panel per direction."""
+def scores_figure(by_class: pd.DataFrame, path: Path, names: dict[str, str]) -> None:
+    """Set-to-set and aligned SSIM (``names[direction]``) of every candidate over all classes, one panel per
+    scored direction."""
     overall = by_class[by_class["class"] == "(all)"]
-    fig, axes = plt.subplots(1, len(DIRECTIONS), figsize=(11, 3.6), squeeze=False)
-    for ax, direction in zip(axes[0], DIRECTIONS):
+    directions = [d for d in DIRECTIONS if d in set(overall["direction"])]
+    fig, axes = plt.subplots(1, len(directions), figsize=(11, 3.6), squeeze=False)
+    for ax, direction in zip(axes[0], directions):
         part = overall[overall["direction"] == direction]
         labels = [candidate_label(c, s).replace("_", " ") for c, s in zip(part["candidate"], part["scope"])]
         y = np.arange(len(part))
@@ -326,7 +689,7 @@ def scores_figure(by_class: pd.DataFrame, path: Path) -> None:
         ax.set_yticks(y, labels, fontsize=8)
         ax.invert_yaxis()
         ax.set_xlim(0, 1)
-        ax.set_xlabel("Colour-SSIM")
+        ax.set_xlabel(names[direction])
         ax.set_title(direction.upper())
         ax.grid(axis="x", alpha=0.3)
     axes[0][0].legend(fontsize=8, loc="lower right")
@@ -371,7 +734,7 @@ def write_figures(data: dict, generated_dir: Path, figures: Path) -> dict[str, b
         loss_figure(data["training"], [f"{r['direction']}/{r['scope']}" for r in data["models"]],
                     figures / "losses.png")
     if not data["by_class"].empty:
-        scores_figure(data["by_class"], figures / "scores.png")
+        scores_figure(data["by_class"], figures / "scores.png", {d: ssim_name(data["score_summary"], d) for d in DIRECTIONS})
     for direction in DIRECTIONS:  # the generate stage's sheet: inputs | generated | ground truth per class
         if (generated_dir / direction / "preview.png").is_file():
             shutil.copyfile(generated_dir / direction / "preview.png", figures / f"grid_{direction}.png")
@@ -389,36 +752,93 @@ def write_figures(data: dict, generated_dir: Path, figures: Path) -> dict[str, b
 def _classify_view(modality: str, entry: dict) -> dict:
     summary, table = entry["summary"], entry["accuracy"]
     status = summary.get("status", "ok")
-    view = None
+    tables = []
     if status == "ok" and not table.empty:
-        view = table_view(accuracy_table(table, modality),
-                          f"Table III ({modality}): test accuracy after each iteration, mean ± std over seeds "
-                          f"{sorted(plain(s) for s in table['seed'].unique())}")
-    return {"modality": modality, "status": status, "table": view, "at_chance": entry["at_chance"],
+        n = (summary.get("counts") or {}).get("real_test")
+        gan_n = (summary.get("gan_test") or {}).get("images")
+        if not entry["by_class"].empty:
+            tables.append(table_view(final_accuracy_table(entry["by_class"]),
+                                     f"Final accuracy ({modality}) per class: mean over seeds [95% Wilson interval on "
+                                     f"the n test images of the row]"))
+        comparisons = comparison_table(summary)
+        if comparisons is not None:
+            tables.append(table_view(comparisons, f"With against without generated images ({modality}): ranked only "
+                                                  f"when the 95% intervals do not overlap"))
+        seeds = sorted(plain(s) for s in table["seed"].unique())
+        tables.append(table_view(accuracy_table(table, modality, n, gan_n),
+                                 f"Table III ({modality}): test accuracy after each iteration, mean ± std over seeds "
+                                 f"{seeds} [95% Wilson interval on n = {n if n else '?'} real test images"
+                                 + (f", {gan_n} generated for the GAN-test" if gan_n else "")
+                                 + "], beside the paper's values at the same iteration"))
+    return {"modality": modality, "status": status, "tables": tables, "at_chance": entry["at_chance"],
             "classes": len(summary.get("classes", [])), "notes": summary.get("notes", [])}
 
 
-def _ssim_view(by_class: pd.DataFrame, number: str, direction: str) -> dict:
-    set_table, aligned = ssim_tables(by_class, direction)
-    name = "visual to tactile (seeing to feel)" if direction == "v2t" else "tactile to visual (touching to see)"
-    return {"direction": direction, "set": table_view(set_table, f"Table {number}: {direction.upper()}, {name}: "
-                                                                  f"set-to-set Colour-SSIM per class"),
-            "aligned": None if aligned is None else table_view(
-                aligned, f"Table {number}b: {direction.upper()}: aligned scores against each output's own ground truth")}
+def _direction_view(data: dict, params: dict, number: str, direction: str) -> dict:
+    """Everything the page shows for one scored direction: SSIM tables, the paper's rows, distribution
+    metrics (all classes and per class) and the memorisation check."""
+    by_class, distribution = data["by_class"], data["distribution"]
+    name = ssim_name(data["score_summary"], direction)
+    title = "visual to tactile (seeing to feel)" if direction == "v2t" else "tactile to visual (touching to see)"
+    set_table, aligned = ssim_tables(by_class, direction, name)
+    classes = sorted(c for c in distribution.loc[distribution["direction"] == direction, "class"].unique() if c != "(all)")
+    overall, per_class = distribution_table(distribution, direction), distribution_table(distribution, direction, classes)
+    memorised = memorisation_table(data["memorisation"], direction)
+    return {
+        "direction": direction, "name": name,
+        "facts": (data["score_summary"].get("distribution") or {}).get(direction) or {},
+        "set": table_view(set_table, f"Table {number}: {direction.upper()}, {title}: set-to-set {name} per class "
+                                     f"[95% bootstrap interval over test groups]"),
+        "aligned": None if aligned is None else table_view(
+            aligned, f"Table {number}b: {direction.upper()}: aligned scores against each output's own ground truth "
+                     f"[95% bootstrap interval over test groups]"),
+        "paper": table_view(paper_table(params, by_class, direction, name),
+                            f"Paper Table {number} ({direction.upper()}) row for row, beside this run where the "
+                            f"experiment matches"),
+        "distribution": None if overall is None else table_view(
+            overall, f"{direction.upper()}: distribution metrics against real held-out half B, all classes"),
+        "distribution_by_class": None if per_class is None or not classes else table_view(
+            per_class, f"{direction.upper()}: distribution metrics per class"),
+        "memorisation": None if memorised is None else table_view(
+            memorised, f"{direction.upper()}: memorisation check, all classes"),
+    }
 
 
-def page_context(data: dict, figures: dict[str, bool]) -> dict:
+def duplicate_counts(ingest: dict) -> dict:
+    """The ingest stage's duplicate counts ({kind: n}), from ``duplicates`` or ``<kind>_duplicates`` keys."""
+    found = ingest.get("duplicates")
+    if isinstance(found, dict):
+        return {k: v for k, v in found.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+    return {k.removesuffix("_duplicates"): v for k, v in ingest.items()
+            if k.endswith("_duplicates") and isinstance(v, (int, float)) and not isinstance(v, bool)}
+
+
+def modalities_present(ingest: dict) -> list[str]:
+    """The modalities the ingest stage kept (its ``modalities``, else the keys of ``per_class_modality``)."""
+    if isinstance(ingest.get("modalities"), (list, dict)):
+        return sorted(ingest["modalities"])
+    return sorted({key.rsplit("/", 1)[-1] for key in ingest.get("per_class_modality") or {}})
+
+
+def page_context(data: dict, figures: dict[str, bool], params: dict | None = None) -> dict:
     """What the report templates render: ``data`` with its tables as template data."""
+    params = params or {}
     quarantine, timings, by_class = data["quarantine"], data["timings"], data["by_class"]
     ms_ssim = data["score_summary"].get("ms_ssim", "computed")
+    skipped = not_scored(data)
     return {
         **{k: data[k] for k in ("title", "synthetic", "dataset", "ingest", "pairs", "run", "params_yaml")},
-        "directions": list(DIRECTIONS), "figures": figures,
+        "directions": list(DIRECTIONS), "figures": figures, "verdicts": verdict_lines(data),
+        "not_scored": skipped, "pair_kinds": data["pair_kinds"], "duplicates": duplicate_counts(data["ingest"]),
+        "modalities": modalities_present(data["ingest"]),
+        "test_per_class": {m: e["summary"].get("test_images_per_class") for m, e in data["classify"].items()
+                           if e["summary"].get("test_images_per_class")},
         "quarantine": table_view(quarantine.head(30), f"Quarantined inputs ({len(quarantine)}; first 30 shown)")
         if not quarantine.empty else None,
         "models": table_view(models_table(data["models"]), "Trained generators (train.json)"),
-        "ms_ssim_note": None if ms_ssim == "computed" else f"MS-SSIM {ms_ssim}.",
-        "ssim": [_ssim_view(by_class, n, d) for n, d in (("I", "v2t"), ("II", "t2v")) if d in set(by_class["direction"])],
+        "ms_ssim_note": None if ms_ssim == "computed" or not len(by_class) else f"MS-SSIM {ms_ssim}.",
+        "ssim": [_direction_view(data, params, n, d) for n, d in (("I", "v2t"), ("II", "t2v"))
+                 if d in set(by_class["direction"]) and d not in skipped],
         "classify": [_classify_view(m, e) for m, e in data["classify"].items()],
         "timings": table_view(timings[["job", "seconds", "finished"]],
                               "Wall time of each job (timing.json in its output folder)") if not timings.empty else None,
@@ -444,7 +864,8 @@ def run_report(params: dict, ingest_dir, pairs_dir, models_dir, generated_dir, s
     for folder in ("figures", "plots"):
         (build / folder).mkdir(parents=True)
     figures = write_figures(data, inputs.generated, build / "figures")
-    page, summary = render_page("report", page_context(data, figures))
+    context = page_context(data, figures, params)
+    page, summary = render_page("report", context)
     (build / "index.html").write_text(page)
     (build / "summary.md").write_text(summary)
     metrics = headline_metrics(data)
@@ -452,6 +873,9 @@ def run_report(params: dict, ingest_dir, pairs_dir, models_dir, generated_dir, s
     write_json(build / "timings.json", timings_record(data["timings"]))
     data["training"].to_csv(build / "plots" / "training.csv", index=False)
     _publish(build, out_dir)
+    print("report: verdicts")
+    for item in context["verdicts"]:
+        print(f"  {item['line']}")
     print(f"report: {out_dir / 'index.html'}, summary.md, metrics.json, timings.json, plots/training.csv and "
           f"{sum(figures.values())} figures in {out_dir / 'figures'}")
     return metrics
