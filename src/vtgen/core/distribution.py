@@ -1,0 +1,589 @@
+"""Distribution metrics for unaligned data: scores that rank real > generated > blur, offline.
+
+Set-to-set Colour-SSIM rewards blur on unaligned data: a flat mean-colour image scores higher
+against real images than real images do. The metrics here compare the *distributions* of two
+image sets instead, and punish a set that lacks texture:
+
+* features: :class:`RandomEncoder` (a fixed random-weight CNN, no downloaded weights) or the
+  penultimate layer of vtgen's own classifier (:func:`classifier_encoder`), through
+  :func:`image_features`;
+* :func:`kid` (Bińkowski et al. 2018, by torchmetrics with a pass-through feature module) and
+  :func:`fid` (Heusel et al. 2017, an exact form that stays accurate for singular covariances)
+  on those features;
+* :func:`spectrum_distance`: distance between azimuthally averaged log power spectra
+  (Durall et al. 2020) of the greyscale images, no features;
+* :func:`two_sample_test`: classifier two-sample test (Lopez-Paz & Oquab 2017), held-out accuracy
+  with a Wilson interval;
+* :func:`prdc_scores`: precision and recall (Kynkäänniemi et al. 2019), density and coverage
+  (Naeem et al. 2020), by the ``prdc`` package;
+* :func:`memorisation`: are generated images closer to the training images than held-out real
+  images are?
+* :func:`gaussian_blur`, :func:`flat_colour_set`, :func:`mean_image_set`: the trivial baselines.
+
+Image inputs are uint8 tensors ``N x 3 x H x W`` (greyscale as three equal channels); feature
+inputs are real ``N x D`` tensors (or arrays). Every function either returns the value its
+docstring documents for degenerate input or raises ``ValueError`` saying what it needs.
+The module is pure: no files, no parameters; sklearn, prdc and torchmetrics (slow to import)
+are imported inside the functions that use them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from vtgen.core.classifier import AlexNet, scale_images, wilson_interval
+
+__all__ = [
+    "RANDOM_ENCODER_SEED", "RANDOM_ENCODER_CHANNELS", "BLUR_FRACTION", "QUANTISATION_PSD",
+    "RandomEncoder", "PenultimateFeatures", "classifier_encoder", "image_features",
+    "kid", "fid", "radial_power_spectrum", "spectrum_distance",
+    "TwoSampleResult", "two_sample_test", "prdc_scores", "MemorisationResult", "memorisation",
+    "gaussian_blur", "default_blur_sigma", "flat_colour_set", "mean_image_set",
+]
+
+RANDOM_ENCODER_SEED = 0
+RANDOM_ENCODER_CHANNELS = (32, 64, 128, 128)
+MIN_ENCODER_SIDE = 16
+BLUR_FRACTION = 1 / 32  # default blur sigma = side / 32 (2 px at 64 px, 8 px at 256 px)
+QUANTISATION_PSD = (1 / 255) ** 2 / 12  # power spectral density of uint8 rounding noise, grey in [0, 1]
+MIN_SPECTRUM_SIDE = 8
+LUMA = (0.299, 0.587, 0.114)  # ITU-R BT.601
+
+
+# --------------------------------------------------------------------------- input checks
+
+def _check_images(images, name: str) -> torch.Tensor:
+    if not isinstance(images, torch.Tensor) or images.dtype != torch.uint8 or images.ndim != 4 or images.shape[1] != 3:
+        raise ValueError(f"{name}: expected uint8 images N x 3 x H x W, got "
+                         f"{getattr(images, 'dtype', type(images).__name__)} {tuple(getattr(images, 'shape', ()))}")
+    return images
+
+
+def _as_features(features, name: str, min_rows: int = 1, metric: str = "this metric") -> torch.Tensor:
+    """Real ``N x D`` tensor or array -> float64 CPU tensor; refuses other shapes, NaN/inf and N < min_rows."""
+    if isinstance(features, np.ndarray):
+        features = torch.from_numpy(features)
+    if not isinstance(features, torch.Tensor) or features.ndim != 2 or features.is_complex() or features.dtype == torch.bool:
+        raise ValueError(f"{name}: expected real features N x D, got "
+                         f"{getattr(features, 'dtype', type(features).__name__)} {tuple(getattr(features, 'shape', ()))}")
+    if features.shape[1] == 0:
+        raise ValueError(f"{name}: features have no dimensions (N x 0)")
+    features = features.detach().to("cpu", torch.float64)
+    if not torch.isfinite(features).all():
+        raise ValueError(f"{name}: features contain NaN or infinite values")
+    if len(features) < min_rows:
+        raise ValueError(f"{metric} needs at least {min_rows} images per set, got {len(features)} in {name}")
+    return features
+
+
+def _pair(real, fake, min_rows: int, metric: str) -> tuple[torch.Tensor, torch.Tensor]:
+    x = _as_features(real, "real", min_rows, metric)
+    y = _as_features(fake, "fake", min_rows, metric)
+    if x.shape[1] != y.shape[1]:
+        raise ValueError(f"{metric}: real and fake features differ in dimension ({x.shape[1]} vs {y.shape[1]})")
+    return x, y
+
+
+# --------------------------------------------------------------------------- encoders
+
+class RandomEncoder(nn.Module):
+    """Fixed random-weight CNN that maps uint8 ``N x 3 x H x W`` tiles (H, W >= 16) to ``N x num_features`` texture statistics.
+
+    Architecture: input scaled to [-1, 1] (x / 127.5 - 1, as the classifier does); four stages of
+    3 x 3 convolution (reflect padding 1, no bias) + ReLU with ``channels`` = (32, 64, 128, 128)
+    outputs, a 2 x 2 average pool between stages. After each stage the per-channel spatial mean
+    and standard deviation (population) are taken, so the features see texture at receptive fields
+    of 3, 8, 18 and 38 px, plus its contrast; ``num_features`` = 2 * sum(channels) = 704.
+    Weights are He-normal (std sqrt(2 / fan_in)) drawn in float32 from a ``torch.Generator``
+    seeded with ``seed`` (:data:`RANDOM_ENCODER_SEED`), in a fixed order, so they are the same bit
+    for bit on every machine; they are buffers, not parameters (nothing to train). Random
+    shallow networks are known to capture texture statistics (Ustyuzhaninov et al. 2017,
+    "What does it take to generate natural textures?", ICLR).
+    Float input is refused: pass the uint8 tiles.
+    """
+
+    def __init__(self, channels: tuple[int, ...] = RANDOM_ENCODER_CHANNELS, seed: int = RANDOM_ENCODER_SEED):
+        super().__init__()
+        if not channels or any(int(c) < 1 for c in channels):
+            raise ValueError(f"channels must be positive integers, got {channels!r}")
+        self.channels = tuple(int(c) for c in channels)
+        self.seed = int(seed)
+        generator = torch.Generator(device="cpu").manual_seed(self.seed)
+        c_in = 3
+        for i, c_out in enumerate(self.channels):
+            weight = torch.randn(c_out, c_in, 3, 3, generator=generator, dtype=torch.float32)
+            self.register_buffer(f"weight{i}", weight * math.sqrt(2.0 / (c_in * 9)))
+            c_in = c_out
+        self.num_features = 2 * sum(self.channels)
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        """uint8 N x 3 x H x W -> float32 N x num_features (means of every stage, then their stds)."""
+        _check_images(images, "RandomEncoder input")
+        if min(images.shape[-2:]) < MIN_ENCODER_SIDE:
+            raise ValueError(f"RandomEncoder needs images of at least {MIN_ENCODER_SIDE} x {MIN_ENCODER_SIDE}, "
+                             f"got {images.shape[-1]} x {images.shape[-2]}")
+        x = images.to(self.weight0.device, torch.float32) / 127.5 - 1.0
+        means, stds = [], []
+        for i in range(len(self.channels)):
+            if i:
+                x = F.avg_pool2d(x, 2)
+            x = F.relu(F.conv2d(F.pad(x, (1, 1, 1, 1), mode="reflect"), getattr(self, f"weight{i}")))
+            means.append(x.mean(dim=(2, 3)))
+            stds.append(x.std(dim=(2, 3), correction=0))
+        return torch.cat(means + stds, dim=1)
+
+
+class PenultimateFeatures(nn.Module):
+    """vtgen's :class:`~vtgen.core.classifier.AlexNet` cut before its last layer: uint8 tiles -> fc7 activations (after ReLU).
+
+    The tiles go through the classifier's own :func:`~vtgen.core.classifier.scale_images` ([-1, 1],
+    channels-last), its conv stack, adaptive pool and fc6/fc7 (with dropout off in eval mode, which
+    :func:`image_features` sets), exactly as in training. Tiles must have the side the model was
+    trained on (``model.size``); ``num_features`` is fc7's width. The model is shared, not copied.
+    """
+
+    def __init__(self, model: AlexNet):
+        super().__init__()
+        if not isinstance(model, AlexNet):
+            raise ValueError(f"PenultimateFeatures takes a vtgen AlexNet, got {type(model).__name__}")
+        self.model = model
+        self.num_features = int(model.classifier.fc7.out_features)
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        _check_images(images, "classifier input")
+        if tuple(images.shape[-2:]) != (self.model.size, self.model.size):
+            raise ValueError(f"the classifier was trained on {self.model.size} x {self.model.size} tiles, "
+                             f"got {images.shape[-1]} x {images.shape[-2]}")
+        m = self.model
+        x = torch.flatten(m.avgpool(m.features(scale_images(images))), 1)
+        head = m.classifier
+        x = head.relu6(head.fc6(head.drop6(x)))
+        return head.relu7(head.fc7(head.drop7(x)))
+
+
+def classifier_encoder(model: AlexNet) -> PenultimateFeatures:
+    """The penultimate-layer (fc7) feature extractor of a trained vtgen classifier; see :class:`PenultimateFeatures`."""
+    return PenultimateFeatures(model)
+
+
+@torch.no_grad()
+def image_features(encoder: nn.Module, images: torch.Tensor, batch_size: int = 64) -> torch.Tensor:
+    """Features of uint8 ``N x 3 x H x W`` ``images`` by ``encoder`` in eval mode, without gradients: float64 ``N x D`` on the CPU.
+
+    The encoder's train/eval mode is restored afterwards. An empty set gives ``0 x num_features``
+    (``0 x 0`` if the encoder has no ``num_features``). Non-finite features are a ValueError.
+    """
+    _check_images(images, "images")
+    if int(batch_size) < 1:
+        raise ValueError(f"batch_size must be at least 1, got {batch_size}")
+    if len(images) == 0:
+        return torch.empty(0, int(getattr(encoder, "num_features", 0)), dtype=torch.float64)
+    parameters = list(encoder.parameters()) + list(encoder.buffers())
+    device = parameters[0].device if parameters else torch.device("cpu")
+    was_training = encoder.training
+    encoder.eval()
+    try:
+        parts = [encoder(images[start:start + int(batch_size)].to(device)).to("cpu", torch.float64)
+                 for start in range(0, len(images), int(batch_size))]
+    finally:
+        encoder.train(was_training)
+    features = torch.cat(parts).reshape(len(images), -1)
+    if not torch.isfinite(features).all():
+        raise ValueError("the encoder returned NaN or infinite features")
+    return features
+
+
+# --------------------------------------------------------------------------- KID, FID
+
+class _PassThrough(nn.Module):
+    """Identity 'feature extractor' so that torchmetrics' FID/KID take precomputed features."""
+
+    def __init__(self, num_features: int):
+        super().__init__()
+        self.num_features = int(num_features)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x
+
+
+def kid(real, fake, subsets: int = 100, subset_size: int | None = None, seed: int = 0) -> tuple[float, float]:
+    """Kernel Inception Distance of two feature sets: (mean, std) of the unbiased MMD^2 over random subsets.
+
+    MMD^2_u = sum_{i != j} k(x_i, x_j) / (m (m - 1)) + sum_{i != j} k(y_i, y_j) / (m (m - 1))
+    - 2 sum_{i, j} k(x_i, y_j) / m^2 with the cubic polynomial kernel k(x, y) = (x.y / D + 1)^3
+    (Bińkowski et al. 2018, "Demystifying MMD GANs", ICLR), computed by torchmetrics'
+    ``KernelInceptionDistance`` on a pass-through feature module, in float64. Each of ``subsets``
+    draws takes ``subset_size`` rows of each set without replacement (default
+    ``min(n_real, n_fake, 1000)``); the draws come from torch's generator seeded with ``seed``
+    inside ``torch.random.fork_rng``, so the result is reproducible and the global RNG is left
+    alone. ``std`` is the population std over subsets (torchmetrics' choice).
+
+    Values: about 0 for two samples of one distribution, positive otherwise; unbiased, so
+    slightly negative values occur. A set against itself with ``subset_size`` = n gives exactly
+    -2 / n (mean k(x_i, x_i) - mean_{i != j} k(x_i, x_j)) <= 0, std 0. Needs at least 2 rows per set
+    and 2 <= subset_size <= min(n_real, n_fake) (ValueError otherwise).
+    """
+    x, y = _pair(real, fake, 2, "KID")
+    if isinstance(subsets, bool) or not isinstance(subsets, int) or subsets < 1:
+        raise ValueError(f"KID subsets must be an integer >= 1, got {subsets!r}")
+    largest = min(len(x), len(y))
+    size = min(largest, 1000) if subset_size is None else subset_size
+    if isinstance(size, bool) or not isinstance(size, int) or not 2 <= size <= largest:
+        raise ValueError(f"KID subset_size must be an integer in [2, {largest}] (the smaller set), got {size!r}")
+    from torchmetrics.image.kid import KernelInceptionDistance
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*will save all extracted features.*")
+        metric = KernelInceptionDistance(feature=_PassThrough(x.shape[1]), subsets=subsets, subset_size=size)
+    metric.update(x, real=True)
+    metric.update(y, real=False)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(seed))
+        mean, std = metric.compute()
+    return float(mean), float(std)
+
+
+def fid(real, fake) -> float:
+    """Fréchet distance between Gaussians fitted to two feature sets (Heusel et al. 2017, NeurIPS).
+
+    FID = |mu_r - mu_f|^2 + Tr(S_r) + Tr(S_f) - 2 Tr (S_r S_f)^(1/2), with sample covariances
+    S = X^T X / (n - 1) of the centred features X, in float64. The cross term is computed
+    exactly from the data: the non-zero eigenvalues of S_r S_f are the squared singular values of
+    X_r X_f^T / sqrt((n_r - 1)(n_f - 1)), so Tr (S_r S_f)^(1/2) = ||X_r X_f^T||_* /
+    sqrt((n_r - 1)(n_f - 1)) (nuclear norm), evaluated as the singular values of R_r R_f^T from
+    thin QR factorisations X = Q R (a matrix of side at most min(n, D)).
+
+    Not torchmetrics' ``FrechetInceptionDistance``, for a measured reason: it takes the square
+    roots of the eigenvalues of S_r S_f, and for singular covariances (n <= D, the usual case
+    here: 704 features from a few dozen tiles) rounding of the zero eigenvalues (about
+    eps * |S|^2) becomes sqrt(eps) * |S| after the root. A set against itself then gave
+    -2.7e-5 (n 15, D 704, features in [0, 1]) and -0.27 for the same features times 100; this
+    form gives 0 to 1e-12. It agrees with torchmetrics and with scipy's ``sqrtm`` where those are
+    accurate (n > D, tests).
+
+    Values: 0 for identical sets (rounding below 0 is returned as 0), larger = further apart;
+    finite for singular covariances, zero-variance features and constant sets (FID of two
+    constant sets = |c_r - c_f|^2). The scale depends on the features: compare values from one
+    encoder only. Needs at least 2 rows per set (ValueError).
+    """
+    x, y = _pair(real, fake, 2, "FID")
+    mu_x, mu_y = x.mean(dim=0), y.mean(dim=0)
+    xc, yc = x - mu_x, y - mu_y
+    scale_x, scale_y = len(x) - 1, len(y) - 1
+    r_x = torch.linalg.qr(xc, mode="r").R
+    r_y = torch.linalg.qr(yc, mode="r").R
+    cross = torch.linalg.svdvals(r_x @ r_y.T).sum() / math.sqrt(scale_x * scale_y)
+    value = (mu_x - mu_y).square().sum() + xc.square().sum() / scale_x + yc.square().sum() / scale_y - 2 * cross
+    return max(float(value), 0.0)
+
+
+# --------------------------------------------------------------------------- power spectrum
+
+def _grey(images: torch.Tensor) -> np.ndarray:
+    """BT.601 luma in [0, 1], float64, N x H x W."""
+    rgb = images.detach().cpu().numpy().astype(np.float64) / 255.0
+    return np.einsum("nchw,c->nhw", rgb, np.asarray(LUMA))
+
+
+def _log_spectra(images: torch.Tensor) -> np.ndarray:
+    """Per-image log10 radial power profiles, N x (min(H, W) // 2)."""
+    _check_images(images, "images")
+    n, _, h, w = images.shape
+    if min(h, w) < MIN_SPECTRUM_SIDE:
+        raise ValueError(f"the power spectrum needs images of at least {MIN_SPECTRUM_SIDE} x {MIN_SPECTRUM_SIDE}, "
+                         f"got {w} x {h}")
+    if n == 0:
+        raise ValueError("the power spectrum needs at least 1 image, got 0")
+    grey = _grey(images)
+    window = np.outer(0.5 - 0.5 * np.cos(2 * np.pi * np.arange(h) / h), 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(w) / w))
+    mean = (grey * window).sum(axis=(1, 2), keepdims=True) / window.sum()
+    power = np.abs(np.fft.fft2((grey - mean) * window)) ** 2 / (window ** 2).sum()
+    side = min(h, w)
+    radius = np.hypot(np.fft.fftfreq(h)[:, None], np.fft.fftfreq(w)[None, :]) * side
+    bins = np.rint(radius).astype(np.int64).ravel()
+    keep = (bins >= 1) & (bins <= side // 2)
+    counts = np.bincount(bins[keep], minlength=side // 2 + 1)[1:]
+    flat = power.reshape(n, -1)[:, keep]
+    sums = np.stack([np.bincount(bins[keep], weights=row, minlength=side // 2 + 1)[1:] for row in flat])
+    return np.log10(sums / counts + QUANTISATION_PSD)
+
+
+def radial_power_spectrum(images: torch.Tensor) -> np.ndarray:
+    """Mean over images of the log10 azimuthally averaged power spectrum of their greyscale (Durall et al. 2020, CVPR).
+
+    Per image: grey = BT.601 luma / 255; a periodic Hann window w; the window-weighted mean is
+    subtracted (removes brightness, the DC term); P = |FFT2(w * (grey - mean))|^2 / sum(w^2), a
+    power spectral density that white noise of variance s^2 gives as s^2 at any image size.
+    Frequencies are binned by radius in cycles per pixel: bin k = round(S * |f|) for
+    k = 1 .. S // 2, S = min(H, W) (bin k is centred on k / S cycles/px; the corners beyond
+    Nyquist are left out). The profile is log10(mean P in bin + Q), with Q = (1/255)^2 / 12 =
+    1.28e-6 the PSD of uint8 rounding noise as a floor, so a flat image has the finite profile
+    log10(Q) = -5.89 everywhere. Returns float64 of length S // 2.
+    Needs at least one image of at least 8 x 8 (ValueError).
+    """
+    return _log_spectra(images).mean(axis=0)
+
+
+def spectrum_distance(real: torch.Tensor, fake: torch.Tensor) -> float:
+    """Mean absolute difference (in decades of power) between the :func:`radial_power_spectrum` profiles of two image sets.
+
+    0 for sets of equal mean log profile; blur lowers the high-frequency bins and a flat image
+    sits at the rounding-noise floor, so both show as large distances. Both sets need the same
+    H x W (ValueError otherwise) and at least one image each.
+    """
+    _check_images(real, "real")
+    _check_images(fake, "fake")
+    if real.shape[-2:] != fake.shape[-2:]:
+        raise ValueError(f"spectrum_distance needs images of one size, got {tuple(real.shape[-2:])} and {tuple(fake.shape[-2:])}")
+    return float(np.mean(np.abs(radial_power_spectrum(real) - radial_power_spectrum(fake))))
+
+
+# --------------------------------------------------------------------------- two-sample test
+
+@dataclass(frozen=True)
+class TwoSampleResult:
+    """Held-out accuracy of a real-vs-fake classifier, its n and its 95% Wilson interval [low, high]; ``folds`` used."""
+
+    accuracy: float
+    n_test: int
+    low: float
+    high: float
+    folds: int = 0
+
+
+def _fold_groups(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Group ids that put every feature vector occurring in both sets (an exact duplicate) into one group."""
+    stacked = np.concatenate([x, y])
+    _, inverse = np.unique(stacked, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    shared = np.intersect1d(inverse[:len(x)], inverse[len(x):])
+    groups = np.arange(len(stacked)) + len(stacked)
+    in_both = np.isin(inverse, shared)
+    groups[in_both] = inverse[in_both]
+    return groups
+
+
+def two_sample_test(real, fake, seed: int = 0, folds: int = 5) -> TwoSampleResult:
+    """Classifier two-sample test (Lopez-Paz & Oquab 2017, ICLR): how well can real and fake features be told apart?
+
+    The larger set is subsampled (without replacement, ``seed``) to the smaller one's n, so the
+    classes are balanced and chance is 0.5. A pipeline of per-feature standardisation and L2
+    logistic regression (scikit-learn, C = 1, lbfgs) is trained and tested in stratified
+    k-fold cross-validation (k = min(folds, n), shuffled with ``seed``); the predictions of all
+    folds are pooled, so ``n_test`` = 2 n (every image is predicted once, by a model that did
+    not see it). A feature vector found in both sets (an exact duplicate) is kept in one fold, so
+    a copy never teaches the model the opposite label of its own test twin. The interval is the
+    Wilson score interval on ``n_test`` (it treats the pooled predictions as independent, an
+    approximation).
+
+    Values: 0.5 = indistinguishable, 1.0 = perfectly separable; values below 0.5 are noise
+    (read them as 0.5). Identical sets give exactly 0.5. If all 2 n vectors are one and the same
+    (e.g. equal constant images), there is nothing to learn and the accuracy is 0.5 by
+    definition (``folds`` = 0). A training fold that holds only one class predicts that class.
+    Needs at least 2 rows per set (ValueError).
+    """
+    x_t, y_t = _pair(real, fake, 2, "the two-sample test")
+    if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
+        raise ValueError(f"folds must be an integer >= 2, got {folds!r}")
+    rng = np.random.default_rng(seed)
+    n = min(len(x_t), len(y_t))
+    x = x_t.numpy()[np.sort(rng.choice(len(x_t), n, replace=False))]
+    y = y_t.numpy()[np.sort(rng.choice(len(y_t), n, replace=False))]
+    data = np.concatenate([x, y])
+    labels = np.repeat([1, 0], n)
+    if len(np.unique(data, axis=0)) == 1:
+        low, high = wilson_interval(0.5, 2 * n)
+        return TwoSampleResult(0.5, 2 * n, low, high, 0)
+
+    from sklearn.exceptions import ConvergenceWarning
+    from sklearn.linear_model import LogisticRegression
+    from sklearn.model_selection import StratifiedGroupKFold
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    groups = _fold_groups(x, y)
+    k = min(folds, n, len(np.unique(groups)))
+    splitter = StratifiedGroupKFold(n_splits=k, shuffle=True, random_state=int(seed) % 2 ** 32)
+    predicted = np.empty(2 * n, dtype=np.int64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        warnings.filterwarnings("ignore", message=".*least populated class.*")
+        for train, test in splitter.split(data, labels, groups):
+            classes = np.unique(labels[train])
+            if len(classes) == 1:
+                predicted[test] = classes[0]
+                continue
+            model = make_pipeline(StandardScaler(), LogisticRegression(C=1.0, max_iter=5000))
+            model.fit(data[train], labels[train])
+            predicted[test] = model.predict(data[test])
+    accuracy = float((predicted == labels).mean())
+    low, high = wilson_interval(accuracy, 2 * n)
+    return TwoSampleResult(accuracy, 2 * n, low, high, k)
+
+
+# --------------------------------------------------------------------------- PRDC
+
+def prdc_scores(real, fake, k: int = 5) -> dict[str, float]:
+    """Precision, recall (Kynkäänniemi et al. 2019, NeurIPS), density and coverage (Naeem et al. 2020, ICML) by the ``prdc`` package.
+
+    Each real (fake) point gets a ball whose radius is the distance to its k-th nearest real
+    (fake) neighbour. precision = share of fake points inside some real ball; recall = share of
+    real points inside some fake ball; density = mean number of real balls holding a fake point,
+    / k (1 on average for matching distributions, can exceed 1); coverage = share of real balls
+    holding at least one fake point. Euclidean distances, strict ``<``.
+
+    ``prdc`` needs k <= n - 2 for both sets (its k-th-neighbour search includes the point
+    itself), so k is lowered to min(k, n_real - 2, n_fake - 2); the k used is returned as
+    ``"k"``. Needs at least 3 rows per set (ValueError). A set of identical points has balls of
+    radius 0: as fake it gets recall 0, as real precision 0 and density 0.
+    """
+    x, y = _pair(real, fake, 3, "PRDC")
+    if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+        raise ValueError(f"PRDC k must be an integer >= 1, got {k!r}")
+    used = min(k, len(x) - 2, len(y) - 2)
+    from prdc import compute_prdc
+
+    with contextlib.redirect_stdout(io.StringIO()):  # prdc prints the set sizes
+        scores = compute_prdc(x.numpy(), y.numpy(), nearest_k=used)
+    return {**{name: float(scores[name]) for name in ("precision", "recall", "density", "coverage")}, "k": float(used)}
+
+
+# --------------------------------------------------------------------------- memorisation
+
+@dataclass(frozen=True)
+class MemorisationResult:
+    """Memorisation check; see :func:`memorisation`. Distances are per generated image."""
+
+    rate: float
+    reference_rate: float
+    nearest_is_train_share: float
+    nearest_is_train_reference: float
+    threshold: float
+    n_generated: int
+    n_train: int
+    n_heldout: int
+    distance_to_train: np.ndarray
+    distance_to_heldout: np.ndarray
+
+
+def _rows(values, name: str) -> torch.Tensor:
+    if isinstance(values, torch.Tensor) and values.ndim == 4:
+        values = values.reshape(len(values), -1)  # images: flattened pixels
+    return _as_features(values, name, 1, "the memorisation check")
+
+
+def _distances(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return torch.cdist(a, b, compute_mode="donot_use_mm_for_euclid_dist")  # exact: a copy is at distance 0
+
+
+def memorisation(generated, train, heldout) -> MemorisationResult:
+    """Are generated images closer to the training images than real images the generator never saw?
+
+    Inputs are ``N x D`` features (or images, ``N x C x H x W``, flattened to pixels); Euclidean
+    distances. d_T(z) is the distance from z to its nearest training image, d_H(z) to its
+    nearest held-out real image.
+
+    * ``rate``: share of generated g with d_T(g) < ``threshold`` = min over held-out h of d_T(h),
+      i.e. closer to the training set than any held-out real image is. ``reference_rate``: the
+      same for each held-out h_i against the threshold of the *other* held-out images (leave
+      one out); for exchangeable real images this is exactly 1 / n_heldout without ties (only
+      the closest one passes), and a new real image passes with probability 1 / (n_heldout + 1).
+      A rate well above that flags copies of training images.
+    * ``nearest_is_train_share``: share of generated g whose nearest real image (train and
+      held-out together) is a training one, d_T(g) < d_H(g). ``nearest_is_train_reference``: the
+      same for each held-out h_i among train and the other held-out images; it carries the
+      share a real image gets from the sizes of the two sets alone.
+
+    Ties count as "not train" (a generated image equally close to both is not flagged). A copy of
+    the training set gives rate 1 and share 1 (unless a held-out image equals a training image,
+    which makes the threshold 0). With 1 held-out image the leave-one-out references are NaN.
+    Needs at least one row in each set and one dimension D (ValueError).
+    """
+    g = _rows(generated, "generated")
+    t = _rows(train, "train")
+    h = _rows(heldout, "heldout")
+    if not g.shape[1] == t.shape[1] == h.shape[1]:
+        raise ValueError(f"the memorisation check needs one dimension D, got {g.shape[1]} (generated), "
+                         f"{t.shape[1]} (train), {h.shape[1]} (heldout)")
+    g_train = _distances(g, t).min(dim=1).values
+    g_held = _distances(g, h).min(dim=1).values
+    h_train = _distances(h, t).min(dim=1).values
+    threshold = float(h_train.min())
+    rate = float((g_train < threshold).double().mean())
+    share = float((g_train < g_held).double().mean())
+    n_h = len(h)
+    if n_h > 1:
+        others = h_train.repeat(n_h, 1)
+        others.fill_diagonal_(math.inf)
+        reference_rate = float((h_train < others.min(dim=1).values).double().mean())
+        h_h = _distances(h, h)
+        h_h.fill_diagonal_(math.inf)
+        reference_share = float((h_train < h_h.min(dim=1).values).double().mean())
+    else:
+        reference_rate = reference_share = math.nan
+    return MemorisationResult(rate, reference_rate, share, reference_share, threshold, len(g), len(t), n_h,
+                              g_train.numpy(), g_held.numpy())
+
+
+# --------------------------------------------------------------------------- baselines
+
+def default_blur_sigma(side: int) -> float:
+    """The blur vtgen's 'blurred real' baseline uses: sigma = side / 32 (2 px at 64 px, 8 px at 256 px)."""
+    return float(side) * BLUR_FRACTION
+
+
+def gaussian_blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Gaussian blur of uint8 ``N x 3 x H x W`` images: uint8 out, same shape.
+
+    Separable float64 convolution with taps exp(-t^2 / (2 sigma^2)), t = -r .. r, r =
+    min(ceil(4 sigma), min(H, W) - 1) (truncated at 4 sigma, as scipy does, and at the image
+    side), normalised to sum 1; reflect padding (mirror about the edge pixel: torch's
+    ``reflect``, OpenCV's BORDER_REFLECT_101); rounded half to even and clipped to [0, 255].
+    ``sigma`` 0 returns a copy; negative or non-finite sigma is a ValueError. vtgen's default is
+    :func:`default_blur_sigma` (side / 32).
+    """
+    _check_images(images, "images")
+    if not (isinstance(sigma, (int, float)) and math.isfinite(sigma) and sigma >= 0):
+        raise ValueError(f"sigma must be a finite number >= 0, got {sigma!r}")
+    if sigma == 0 or len(images) == 0:
+        return images.clone()
+    h, w = images.shape[-2:]
+    radius = min(math.ceil(4 * sigma), min(h, w) - 1)
+    if radius < 1:
+        return images.clone()
+    t = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    taps = torch.exp(-t ** 2 / (2 * sigma ** 2))
+    taps = taps / taps.sum()
+    x = images.to(torch.float64).reshape(-1, 1, h, w)
+    x = F.conv2d(F.pad(x, (radius, radius, 0, 0), mode="reflect"), taps.view(1, 1, 1, -1))
+    x = F.conv2d(F.pad(x, (0, 0, radius, radius), mode="reflect"), taps.view(1, 1, -1, 1))
+    return x.round().clamp(0, 255).to(torch.uint8).reshape(images.shape)
+
+
+def flat_colour_set(images: torch.Tensor, n: int | None = None) -> torch.Tensor:
+    """``n`` (default len(images)) copies of one flat image of the mean colour of ``images`` (rounded), uint8."""
+    _check_images(images, "images")
+    if len(images) == 0:
+        raise ValueError("a flat colour needs at least 1 image, got 0")
+    colour = images.to(torch.float64).mean(dim=(0, 2, 3)).round().to(torch.uint8)
+    count = len(images) if n is None else int(n)
+    return colour.view(1, 3, 1, 1).expand(count, 3, *images.shape[-2:]).clone()
+
+
+def mean_image_set(images: torch.Tensor, n: int | None = None) -> torch.Tensor:
+    """``n`` (default len(images)) copies of the pixel-wise mean image of ``images`` (rounded), uint8."""
+    _check_images(images, "images")
+    if len(images) == 0:
+        raise ValueError("a mean image needs at least 1 image, got 0")
+    mean = images.to(torch.float64).mean(dim=0).round().to(torch.uint8)
+    count = len(images) if n is None else int(n)
+    return mean.unsqueeze(0).expand(count, *mean.shape).clone()
