@@ -578,3 +578,206 @@ def test_image_tiles_reports_an_image_too_small():
     roi = {"size": 8, "tactile_box": "full", "remove_markers": False, "visual_crop": "centre", "crop_fraction": 0.4}
     boxes, tiles, reason = image_tiles(np.zeros((2, 2, 3), np.uint8), "visual", roi)
     assert (boxes, tiles) == ([], []) and "too small" in reason
+
+
+# --- round sensors: find_disc, disc_square, regions ------------------------------------------------------
+
+VT60 = Path(__file__).resolve().parents[2] / "shared/data/vt60_subset"
+VT60_TOUCH = sorted((VT60 / "touch").glob("*/*/*.jpg"))
+needs_vt60 = pytest.mark.skipif(not VT60_TOUCH, reason=f"vt60 touch frames not found under {VT60}")
+AUTO = {"size": 64, "tactile_box": "auto", "remove_markers": True, "visual_crop": "centre", "crop_fraction": 0.5}
+
+
+def disc_frame(centre=(300, 250), radius=180, inside=230, outside=30, shape=(480, 640), texture=0.0, seed=0):
+    """A grey frame: a disc of level ``inside`` (plus zero-mean texture of std ``texture``) on ``outside``, sensor noise."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[: shape[0], : shape[1]]
+    disc = (xx - centre[0]) ** 2 + (yy - centre[1]) ** 2 <= radius**2
+    frame = np.full(shape, float(outside)) + rng.normal(0, 2, shape)
+    pattern = cv2.GaussianBlur(rng.normal(0, 1, shape), (0, 0), 3)
+    frame[disc] = inside + (pattern / pattern.std() * texture)[disc]
+    return np.clip(frame, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("kwargs", [
+    {},                                                                  # bright disc on dark
+    {"inside": 120, "outside": 250, "centre": (215, 225), "radius": 270},  # dark disc on white, cut by the frame (vt60-like)
+    {"inside": 128, "outside": 128, "texture": 25.0},                    # a disc of zero-mean texture on flat grey
+    {"centre": (128, 120), "radius": 90, "shape": (256, 256)},           # smaller frame, no downscale factor of 4
+], ids=["bright", "clipped", "texture", "small"])
+def test_find_disc_recovers_centre_and_radius(kwargs):
+    from vtgen.core.roi import find_disc
+
+    frame = disc_frame(**kwargs)
+    cx, cy = kwargs.get("centre", (300, 250))
+    radius = kwargs.get("radius", 180)
+    for image in (frame, cv2.cvtColor(frame, cv2.COLOR_GRAY2RGB)):
+        disc = find_disc(image)
+        assert disc.found, disc
+        assert abs(disc.cx - cx) <= 3 and abs(disc.cy - cy) <= 3 and abs(disc.radius - radius) <= 3, disc
+        assert disc.support > 0.8 and disc.overlap > 0.95
+
+
+def test_find_disc_tolerates_contact_as_bright_as_the_surround():
+    """Contact that whitens part of the disc up to its rim (as on vt60) must not move the fit."""
+    from vtgen.core.roi import find_disc
+
+    frame = disc_frame(inside=120, outside=250, centre=(215, 225), radius=270)
+    cv2.ellipse(frame, (330, 120), (150, 70), 30, 0, 360, 250, -1)  # a bright contact band reaching the rim
+    disc = find_disc(frame)
+    assert disc.found and abs(disc.cx - 215) <= 4 and abs(disc.cy - 225) <= 4 and abs(disc.radius - 270) <= 4, disc
+
+
+def test_gelsight_rectangle_is_no_disc_and_still_a_rectangle():
+    from vtgen.core.roi import find_disc, image_roi
+
+    rng = np.random.default_rng(4)
+    rect = Box(40, 60, 150, 110)
+    noise = cv2.GaussianBlur(rng.normal(0, 1, (rect.h, rect.w)), (0, 0), 2)
+    frame = gel_frame(GEL_COLOUR + (noise / noise.std() * 15)[..., None] * [1.0, 0.8, 0.6], rect)
+    assert not find_disc(frame).found
+    result = image_roi(frame, "tactile", {**AUTO, "remove_markers": False})
+    assert result.region.shape == "rectangle" and iou(result.region.box, rect) > 0.9
+    assert result.region.box == contact_box(frame) and "no disc" in result.region.note
+    cleaned = image_roi(frame, "tactile", AUTO)  # as before round sensors: contact found on the cleaned frame
+    assert cleaned.region.box == contact_box(remove_markers(frame))
+    assert np.array_equal(cleaned.tiles[0], cut_tile(remove_markers(frame), cleaned.boxes[0], 64))
+
+
+def test_featureless_frame_falls_back_to_the_whole_frame():
+    from vtgen.core.roi import find_disc, image_roi
+
+    flat = np.full((120, 160), 90, np.uint8)
+    disc = find_disc(flat)
+    assert not disc.found and "flat" in disc.reason and np.isnan(disc.radius)
+    result = image_roi(flat, "tactile", AUTO)
+    assert result.region.shape == "frame" and result.region.box == Box(0, 0, 160, 120)
+    assert "no disc" in result.region.note and "whole frame" in result.region.note
+    assert result.boxes == [Box(50, 30, 60, 60)] and np.array_equal(result.tiles[0], np.full((64, 64, 3), 90, np.uint8))
+
+
+@needs_data
+@pytest.mark.parametrize("path", TACTILE[::3], ids=lambda p: p.name)
+def test_real_gelsight_tiles_are_no_disc(path):
+    from vtgen.core.roi import find_disc
+
+    assert not find_disc(load(path)).found
+
+
+@pytest.mark.parametrize(("cx", "cy", "r", "width", "height"), [
+    (320, 240, 100, 640, 480), (215.3, 224.7, 270, 640, 480), (20, 240, 200, 640, 480), (50, 50, 400, 100, 100)])
+def test_disc_square_lies_inside_the_disc_and_the_frame(cx, cy, r, width, height):
+    from vtgen.core.roi import Disc, disc_square
+
+    box = disc_square(Disc(cx, cy, r, 1.0, 1.0, True), width, height)
+    assert box.fits(width, height) and box.w == box.h
+    corners = [(box.x - 0.5, box.y - 0.5), (box.x + box.w - 0.5, box.y - 0.5), (box.x - 0.5, box.y + box.h - 0.5),
+               (box.x + box.w - 0.5, box.y + box.h - 0.5)]
+    assert all(np.hypot(x - cx, y - cy) <= r + 1 for x, y in corners)
+    if 2 * min(cx, width - cx, cy, height - cy) > np.sqrt(2) * r + 2:  # the frame does not cut it: the inscribed square
+        assert box.w == int(np.floor(np.sqrt(2) * r))
+        assert abs(box.x + box.w / 2 - 0.5 - cx) <= 1 and abs(box.y + box.h / 2 - 0.5 - cy) <= 1
+
+
+def test_disc_markers_are_painted_out_near_the_crop_only():
+    from vtgen.core.roi import image_roi
+
+    frame = disc_frame(inside=200, outside=250, centre=(320, 240), radius=200)
+    dots = [(x, y) for y in range(150, 340, 24) for x in range(230, 420, 24)]
+    for c in dots:
+        cv2.circle(frame, c, 5, 40, -1, lineType=cv2.LINE_AA)
+    clean = image_roi(frame, "tactile", AUTO)
+    kept = image_roi(frame, "tactile", {**AUTO, "remove_markers": False})
+    assert clean.region.shape == "disc" and clean.boxes == kept.boxes
+    box = clean.boxes[0]
+    scale = 64 / box.w
+    centres = [(round((x - box.x + 0.5) * scale - 0.5), round((y - box.y + 0.5) * scale - 0.5)) for x, y in dots
+               if box.x + 8 <= x < box.x + box.w - 8 and box.y + 8 <= y < box.y + box.h - 8]
+    assert centres
+    dark_before = np.mean([kept.tiles[0][y, x, 0] for x, y in centres])
+    dark_after = np.mean([clean.tiles[0][y, x, 0] for x, y in centres])
+    assert dark_before < 150 and dark_after > 185, (dark_before, dark_after)
+    assert (clean.tiles[0][..., 0] == clean.tiles[0][..., 2]).all()
+
+
+# --- real round-sensor frames: vt60 ---------------------------------------------------------------------
+
+
+@pytest.mark.slow
+@needs_vt60
+def test_every_vt60_touch_frame_gets_a_plausible_disc_and_grey_tiles():
+    from vtgen.core.roi import image_roi
+
+    shapes, centres, radii = [], [], []
+    for path in VT60_TOUCH:
+        frame = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        result = image_roi(frame, "tactile", AUTO)
+        shapes.append(result.region.shape)
+        disc = result.region.disc
+        assert disc is not None and np.isfinite(disc.radius), path
+        centres.append((disc.cx, disc.cy))
+        radii.append(disc.radius)
+        assert len(result.tiles) == 1
+        tile = result.tiles[0]
+        assert (tile[..., 0] == tile[..., 1]).all() and (tile[..., 1] == tile[..., 2]).all()
+    shapes, centres, radii = np.array(shapes), np.array(centres), np.array(radii)
+    assert (shapes == "disc").mean() >= 0.98, dict(zip(*np.unique(shapes, return_counts=True)))
+    found = shapes == "disc"
+    # the sensor disc: radius about 270 px, centre about (214, 225), a little left of the 640x480 frame's centre
+    assert (np.abs(centres[found] - [320, 240]) <= [0.25 * 640, 0.25 * 480]).all()
+    assert (np.abs(radii[found] - 270) <= 15).all()
+    assert np.ptp(centres[found], axis=0).max() <= 60  # one sensor: the disc barely moves between frames
+    # every disc found lies over the frame's middle, so its crop does too
+    assert (shapes[~found] == "rectangle").all() or (shapes[~found] == "frame").all()
+
+
+@needs_vt60
+def test_read_for_roi_gives_the_pixels_of_read_rgb8():
+    from vtgen.io.images import read_rgb8
+    from vtgen.stages.roi import read_for_roi
+
+    paths = VT60_TOUCH[::60] + sorted((VT60 / "vision").glob("*/*/*.jpg"))[::60] + TACTILE[::10]
+    for path in paths:
+        fast, reference = read_for_roi(path), read_rgb8(path).rgb
+        if fast.ndim == 2:
+            fast = np.repeat(fast[:, :, None], 3, axis=2)
+        assert np.array_equal(fast, reference), path
+
+
+@needs_vt60
+def test_roi_stage_on_vt60_records_discs_and_one_channel(tmp_path):
+    import json
+
+    import pandas as pd
+
+    from vtgen.core.roi import image_tiles
+    from vtgen.io.images import read_rgb8
+    from vtgen.stages.roi import REGION_COLUMNS, run_roi
+
+    touch = VT60_TOUCH[::40]
+    vision = sorted((VT60 / "vision").glob("*/*/*.jpg"))[::40]
+    paths = touch + vision
+    manifest = pd.DataFrame({"path": [str(p) for p in paths], "class": [p.parts[-3] for p in paths],
+                             "modality": ["tactile"] * len(touch) + ["visual"] * len(vision), "split": "train",
+                             "source": [p.stem for p in paths], "group": [p.parts[-2] for p in paths],
+                             "pair_key": [p.stem for p in paths], "width": 0, "height": 0})
+    manifest.to_parquet(tmp_path / "manifest.parquet")
+    summary = run_roi(tmp_path / "manifest.parquet", AUTO, tmp_path / "roi", workers=2)
+    assert summary["channels"] == {"tactile": 1, "visual": 3}
+    assert summary["regions"]["visual"] == {"frame": len(vision)}
+    assert summary["regions"]["tactile"].get("disc", 0) >= len(touch) - 1
+    written = json.loads((tmp_path / "roi/summary.json").read_text())
+    assert written["channels"] == summary["channels"]
+    regions = pd.read_parquet(tmp_path / "roi/regions.parquet")
+    assert list(regions.columns) == REGION_COLUMNS and len(regions) == len(paths)
+    assert list(regions["image_path"]) == [str(p) for p in paths]
+    discs = regions[regions["shape"] == "disc"]
+    assert (discs["disc_support"] >= 0.6).all() and discs["disc_found"].all() and (abs(discs["disc_radius"] - 270) < 15).all()
+    assert regions.loc[regions["modality"] == "visual", "disc_found"].isna().all()
+    tiles = pd.read_parquet(tmp_path / "roi/tiles.parquet")
+    for path, modality in zip(paths[::3], manifest["modality"][::3]):
+        boxes, expected, reason = image_tiles(read_rgb8(path).rgb, modality, AUTO)  # RGB in: the stage decoded grey
+        rows = tiles[tiles["image_path"] == str(path)].sort_values("tile_index")
+        assert reason == "" and [Box(*r) for r in rows[["box_x", "box_y", "box_w", "box_h"]].itertuples(index=False)] == boxes
+        for tile_path, tile in zip(rows["tile_path"], expected):
+            assert np.array_equal(read_rgb8(tmp_path / "roi/tiles" / tile_path).rgb, tile)

@@ -445,9 +445,9 @@ def find_disc(frame: np.ndarray, flat_level: float = 8.0, min_support: float = 0
     that its longer side is :data:`DISC_DETECTION_SIDE` px:
 
     1. the surround level is the median of the most common 24-level band of the 2 px border strip;
-    2. each pixel's local RMS deviation from it (a 5 x 5 box mean of the squared difference: a
-       brighter, darker or textured disc all deviate) is thresholded by Otsu (at least
-       ``flat_level`` grey levels);
+    2. each pixel's local mean absolute deviation from it (a 5 x 5 box mean: a brighter, darker or
+       textured disc all deviate; a linear filter, so a step edge crosses Otsu's mid-level threshold
+       where it lies) is thresholded by Otsu (at least ``flat_level`` grey levels);
     3. the connected components of at least 5 % of the largest one are merged and their convex
        hull is taken: contact can make parts of the disc as bright as the surround, cutting
        notches into the region or splitting it, and the hull bridges them; its vertices lie on
@@ -481,8 +481,7 @@ def find_disc(frame: np.ndarray, flat_level: float = 8.0, min_support: float = 0
     bands = border >> 3
     mode = int(np.argmax(np.bincount(bands, minlength=32)))
     surround = float(np.median(border[np.abs(bands.astype(int) - mode) <= 1]))
-    diff = small.astype(np.float32) - surround
-    deviation = np.minimum(np.sqrt(cv2.boxFilter(diff * diff, -1, (5, 5))), 255).astype(np.uint8)
+    deviation = cv2.boxFilter(cv2.absdiff(small, np.full_like(small, round(surround))), -1, (5, 5))
     if deviation.max() <= flat_level:
         return none("flat frame: nothing departs from the surround")
     level, _ = cv2.threshold(deviation, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
