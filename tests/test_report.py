@@ -193,7 +193,9 @@ def fake_one_modality(root) -> dict:
     reason = "translation needs both modalities: this dataset has tactile images only"
     _write_json(folders["ingest"] / "summary.json", {"entries_in": 12, "kept": 12, "quarantined": 0, "with_note": 0,
                                                      "classes": list(CLASSES), "modalities": ["tactile"],
-                                                     "duplicates": {"exact": 1, "near": 3}})
+                                                     "duplicates": {"exact_duplicate_files": 1, "near_duplicate_files": 3,
+                                                                    "near_duplicate_rule": "16x16 thumbnails"},
+                                                     "translation": {"possible": False, "reason": "no visual images"}})
     pd.DataFrame(columns=["path", "class", "modality", "reason"]).to_parquet(folders["ingest"] / "quarantine.parquet")
     _write_json(folders["pairs"] / "summary.json", {"tiles_per_split": {"test/tactile": 4, "train/tactile": 8},
                                                     "translation": {"possible": False, "reason": reason},
@@ -387,7 +389,7 @@ def test_report_opens_with_verdicts_and_warns_where_generated_data_fails(tmp_pat
     assert "WARNING: V2T" not in summary  # only status warning is marked
     # the data facts: pair kinds per direction and split, the dropped pairs, per-class test n
     assert "- T2V pairs: train 8 (pixel 4, class 4), test 2 (pixel 1, class 1)" in summary
-    assert "- WARNING: v2t: class denim: 2 name pairs promised by the layout were dropped" in summary
+    assert "- WARNING (pairs): v2t: class denim: 2 name pairs promised by the layout were dropped" in summary
     assert "- real tactile test images per class: <b> 2, denim 2" in summary
     assert "pairs are by class only" not in summary
     # distribution and memorisation tables with n, intervals and a reading that does not rank overlaps
@@ -419,7 +421,7 @@ def test_a_one_modality_dataset_gets_a_report_that_says_why_nothing_was_translat
     line = "V2T: not scored: translation needs both modalities: this dataset has tactile images only"
     assert f"- {line}" in summary and f"  {line}" in printed and line in page
     assert "- visual classification: not applicable: classification needs at least 2 classes" in summary
-    assert "- modalities present: tactile" in summary and "- duplicates found by ingest: exact 1, near 3" in summary
+    assert "- modalities present: tactile" in summary and "- duplicates found by ingest: exact duplicate files 1, near duplicate files 3" in summary
     assert "- V2T pairs: none" in summary
     assert "Table I:" not in summary and "Table III (tactile)" in summary  # real-only tactile classification
     assert "| (all) | 4 | 0.710 [0.410, 0.910] |" in summary

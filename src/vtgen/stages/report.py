@@ -224,10 +224,10 @@ def collect(params: dict, inputs: ReportInputs) -> dict:
 # ---------------------------------------------------------------- verdicts
 
 
-def translation_reason(pairs: dict, direction: str) -> str | None:
-    """The reason the pairs stage recorded (its ``translation`` entry, overall or per direction) for
-    ``direction`` having no translation, or None when it recorded none."""
-    entry = pairs.get("translation")
+def translation_reason(summary: dict, direction: str) -> str | None:
+    """The reason a stage summary (pairs or ingest) records in its ``translation`` entry, overall or per
+    direction, for ``direction`` having no translation, or None when it records none."""
+    entry = summary.get("translation")
     if isinstance(entry, dict) and isinstance(entry.get(direction), (dict, str)):
         entry = entry[direction]
     if isinstance(entry, dict):
@@ -237,7 +237,7 @@ def translation_reason(pairs: dict, direction: str) -> str | None:
 
 def not_scored(data: dict) -> dict[str, str]:
     """{direction: why it has no scores} for the directions without scores (a one-modality dataset:
-    the pairs stage's reason first, then the train stage's status, then the score stage's)."""
+    the pairs stage's reason first, then the ingest stage's, the train stage's status, the score stage's)."""
     recorded = data["score_summary"].get("not_scored") or {}
     scored = set(data["by_class"]["direction"])
     result = {}
@@ -246,7 +246,8 @@ def not_scored(data: dict) -> dict[str, str]:
             continue
         statuses = [str(r["status"]).removeprefix("not applicable: ") for r in data["models"]
                     if r["direction"] == direction and str(r.get("status", "ok")).startswith("not applicable")]
-        result[direction] = (translation_reason(data["pairs"], direction) or (statuses[0] if statuses else None)
+        result[direction] = (translation_reason(data["pairs"], direction) or translation_reason(data["ingest"], direction)
+                             or (statuses[0] if statuses else None)
                              or recorded.get(direction) or "the score stage has no scores for this direction")
     return result
 
@@ -805,10 +806,11 @@ def _direction_view(data: dict, params: dict, number: str, direction: str) -> di
 
 
 def duplicate_counts(ingest: dict) -> dict:
-    """The ingest stage's duplicate counts ({kind: n}), from ``duplicates`` or ``<kind>_duplicates`` keys."""
+    """The ingest stage's duplicate counts ({what: n}; its ``duplicates`` entry, numbers only)."""
     found = ingest.get("duplicates")
     if isinstance(found, dict):
-        return {k: v for k, v in found.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        return {k.replace("_", " "): v for k, v in found.items()
+                if isinstance(v, (int, float)) and not isinstance(v, bool)}
     return {k.removesuffix("_duplicates"): v for k, v in ingest.items()
             if k.endswith("_duplicates") and isinstance(v, (int, float)) and not isinstance(v, bool)}
 
