@@ -43,7 +43,9 @@ def test_generic_reader_keeps_good_converts_and_quarantines_bad(messy_generic):
     assert "empty file" in reasons["cotton/visual/zero.png"]
     assert "not an image file" in reasons["cotton/visual/notes.txt"]
     assert "empty class" in reasons["empty_class"]
-    assert "no usable tactile" in reasons["silk/visual/x.png"] and "silk/visual/y.png" in reasons
+    # a class with one modality is kept (classification and splits still use it), and said so
+    assert "silk/visual/x.png" not in reasons and "silk/visual/y.png" not in reasons
+    assert summary["translation"]["possible"] and "silk" in summary["translation"]["reason"]
     assert "not a modality folder" in reasons["linen/depth"]
     assert "image at the top level" in reasons["stray.png"]
     assert summary["ignored_top_level_files"] == ["README.md"]
@@ -61,7 +63,7 @@ def test_generic_reader_keeps_good_converts_and_quarantines_bad(messy_generic):
 
     # nothing silently dropped: every entry found is kept or quarantined
     assert summary["entries_in"] == summary["kept"] + summary["quarantined"] == len(manifest) + len(quarantine)
-    assert set(manifest["class"]) == {"cotton", "wool"}
+    assert set(manifest["class"]) == {"cotton", "wool", "silk"}
     assert set(manifest["modality"]) == {"visual", "tactile"}
     assert manifest["md5"].str.fullmatch(r"[0-9a-f]{32}").all()
     # aligned views: the same name in both modalities shares pair_key and source

@@ -3,7 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vtgen.stages.pairs import assign_splits, build_pairs, leaked_sources
+from vtgen.stages.pairs import assign_splits, build_pairs, leaked_groups as leaked_sources
 
 
 def make_tiles(spec, aligned=True, tiles_per_image=2, fixed=None):
@@ -15,10 +15,11 @@ def make_tiles(spec, aligned=True, tiles_per_image=2, fixed=None):
                 source = f"{cls}/{i}" if aligned else f"{cls}/{modality[0]}{i}"
                 for k in range(tiles_per_image):
                     rows.append({
-                        "path": f"{modality}/{cls}/{i}_{k}.png", "class": cls, "modality": modality,
-                        "split": (fixed or {}).get((cls, source), ""), "source": source,
+                        "path": f"{modality}/{cls}/{i}_{k}.png", "image_path": f"{modality}/{cls}/{i}.png",
+                        "class": cls, "modality": modality,
+                        "split": (fixed or {}).get((cls, source), ""), "source": source, "group": source,
                         "pair_key": source if aligned else "", "tile_index": k,
-                        "box_x": 32 * k, "box_y": 0, "box_w": 32, "box_h": 32,
+                        "box_x": 32 * k, "box_y": 0, "box_w": 32, "box_h": 32, "frame_w": 64, "frame_h": 32,
                     })
     return pd.DataFrame(rows)
 
@@ -84,17 +85,19 @@ def test_fixed_test_split_is_kept_and_shared_sources_are_reported():
     # ViTac-like: tactile frames are separate sources; all visual tiles come from one photo in train and test
     rows = []
     for i, split in enumerate(["train"] * 6 + ["test"] * 2):
-        rows.append({"path": f"t/{i}.jpg", "class": "11", "modality": "tactile", "split": split,
-                     "source": f"frame{i}", "pair_key": "", "tile_index": 0, "box_x": 0, "box_y": 0, "box_w": 8, "box_h": 8})
-        rows.append({"path": f"v/{i}.jpg", "class": "11", "modality": "visual", "split": split,
-                     "source": "IMG_2460", "pair_key": "", "tile_index": 0, "box_x": 0, "box_y": 0, "box_w": 8, "box_h": 8})
+        rows.append({"path": f"t/{i}.jpg", "image_path": f"t/{i}.jpg", "class": "11", "modality": "tactile",
+                     "split": split, "source": f"frame{i}", "group": f"frame{i}", "pair_key": "", "tile_index": 0,
+                     "box_x": 0, "box_y": 0, "box_w": 8, "box_h": 8, "frame_w": 8, "frame_h": 8})
+        rows.append({"path": f"v/{i}.jpg", "image_path": f"v/{i}.jpg", "class": "11", "modality": "visual",
+                     "split": split, "source": "IMG_2460", "group": "IMG_2460", "pair_key": "", "tile_index": 0,
+                     "box_x": 0, "box_y": 0, "box_w": 8, "box_h": 8, "frame_w": 8, "frame_h": 8})
     tiles = pd.DataFrame(rows)
     tiles["split"], warnings = assign_splits(tiles, 0.2, 0.2, seed=0)
     tactile = tiles[tiles["modality"] == "tactile"]
     assert list(tactile["split"][-2:]) == ["test", "test"]
     assert "test" not in set(tactile["split"][:6]) and "val" in set(tactile["split"][:6])
     assert leaked_sources(tiles) == ["11/IMG_2460"]
-    assert any("IMG_2460" in w and "shared across splits" in w for w in warnings)
+    assert any("IMG_2460" in w and "shared across" in w and "6 train" in w and "2 test" in w for w in warnings)
 
 
 @pytest.mark.parametrize("direction", ["v2t", "t2v"])

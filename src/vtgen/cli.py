@@ -37,7 +37,7 @@ def _render(args, params) -> None:
 def _ingest(args, params) -> None:
     from vtgen.stages.ingest import run_ingest
 
-    run_ingest(params["dataset"]["path"], params["dataset"]["source"], args.out, params["ingest"]["workers"])
+    run_ingest(params["dataset"]["path"], params["dataset"], args.out, params["ingest"]["workers"])
 
 
 def _roi(args, params) -> None:
@@ -74,7 +74,7 @@ def _translate(args, params) -> None:
 def _score(args, params) -> None:
     from vtgen.stages.score import run_score
 
-    run_score(params, args.pairs, args.generated, args.out)
+    run_score(params, args.pairs, args.generated, args.out, args.classify)
 
 
 def _classify(args, params) -> None:
@@ -174,6 +174,8 @@ def build_parser() -> argparse.ArgumentParser:
     score = stage("score", _score, "Colour-SSIM, grey SSIM and PSNR of generated images, with reference levels")
     score.add_argument("--pairs", required=True, help="folder written by the pairs stage")
     score.add_argument("--generated", required=True, help="folder holding one generate output per direction")
+    score.add_argument("--classify", help="folder of classify/<modality> outputs (their real-only classifiers are "
+                                          "a feature view of the distribution metrics)")
     classify = stage("classify", _classify, "texture classifier: real only vs real + generated, per modality")
     classify.add_argument("--modality", required=True, choices=["visual", "tactile"])
     classify.add_argument("--pairs", required=True, help="folder written by the pairs stage")
