@@ -86,7 +86,7 @@ def test_perfect_translator_scores_one_aligned_and_beats_every_baseline(tmp_path
     assert np.allclose(generated["nearest_real_colour_ssim"], 1.0)
     for direction in ("v2t", "t2v"):
         levels = summary["scores"][direction]
-        assert set(levels) == set(CANDIDATES)
+        assert set(levels) == set(CANDIDATES) - {"real_heldout", "blurred_real"}  # the SSIM candidates
         for baseline in ("nearest_neighbour", "mean_image", "flat_mean_colour"):
             assert levels["generated"]["colour_ssim"] > levels[baseline]["colour_ssim"]
         assert levels["real_train"]["colour_ssim"] is None  # no aligned level for real vs real
@@ -136,12 +136,16 @@ def test_reference_candidates_are_the_nearest_target_and_class_means():
 
 def test_by_class_overall_row_averages_images():
     scores = pd.DataFrame({"direction": "v2t", "scope": "all", "candidate": "generated",
-                           "class": ["a", "a", "b"], "colour_ssim": [0.2, 0.4, 0.9], "grey_ssim": 0.0, "psnr": 1.0,
-                           "ms_ssim": np.nan, "set_colour_ssim": [0.1, 0.3, 0.5], "nearest_real_colour_ssim": 0.0})
+                           "class": ["a", "a", "b"], "group": ["a1", "a2", "b1"], "colour_ssim": [0.2, 0.4, 0.9],
+                           "grey_ssim": 0.0, "psnr": 1.0, "ms_ssim": np.nan, "set_colour_ssim": [0.1, 0.3, 0.5],
+                           "nearest_real_colour_ssim": 0.0})
     table = by_class(scores).set_index("class")
     assert table.loc["a", "colour_ssim"] == pytest.approx(0.3)
     assert table.loc["(all)", "colour_ssim"] == pytest.approx(0.5)
-    assert table.loc["(all)", "images"] == 3
+    assert table.loc["(all)", "images"] == 3 and table.loc["(all)", "groups"] == 3
+    # n and a 95% bootstrap interval over the groups, which brackets the mean
+    assert table.loc["a", "colour_ssim_low"] == pytest.approx(0.2) and table.loc["a", "colour_ssim_high"] == pytest.approx(0.4)
+    assert table.loc["b", "colour_ssim_low"] == table.loc["b", "colour_ssim_high"] == pytest.approx(0.9)  # one group
 
 
 def _read(paths):

@@ -80,7 +80,7 @@ STAGES: tuple[Stage, ...] = (
           "vtgen train --params params.yaml --direction {direction} --scope {scope} --pairs data/pairs "
           "--out models/{direction}/{scope}",
           inputs=("data/pairs", "data/roi"), outputs=("models/{direction}/{scope}",),
-          params=("translation", "presets.${translation.preset}"), threads="translation.threads",
+          params=("translation", "presets.${translation.preset}", "roi"), threads="translation.threads",
           doc="Train the conditional GAN of one direction for one scope entry ('all' or a class)."),
     Stage("generate", "vtgen.stages.generate",
           "vtgen generate --params params.yaml --direction {direction} --pairs data/pairs --models models/{direction} "
@@ -89,9 +89,12 @@ STAGES: tuple[Stage, ...] = (
           params=("generate", "translation.scope", "translation.device"),
           doc="Translate the test split and generate.train_share of the training inputs of one direction."),
     Stage("score", "vtgen.stages.score",
-          "vtgen score --params params.yaml --pairs data/pairs --generated data/generated --out data/scores",
-          inputs=("data/pairs", "data/roi", "data/generated/{direction}"), outputs=("data/scores",), params=("score",),
-          doc="Colour-SSIM (aligned, set-to-set, nearest real), grey SSIM, PSNR, with reference levels."),
+          "vtgen score --params params.yaml --pairs data/pairs --generated data/generated --classify data/classify "
+          "--out data/scores",
+          inputs=("data/pairs", "data/roi", "data/generated/{direction}", "data/classify/{modality}"),
+          outputs=("data/scores",), params=("score",),
+          doc="Colour-SSIM (aligned, set-to-set, nearest real), KID, FID, spectrum, two-sample test, PRDC and "
+              "memorisation, each beside reference levels."),
     Stage("classify", "vtgen.stages.classify",
           "vtgen classify --params params.yaml --modality {modality} --pairs data/pairs --generated data/generated "
           "--out data/classify/{modality}",
