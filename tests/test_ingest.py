@@ -1,3 +1,6 @@
+import json
+import re
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -188,3 +191,249 @@ def test_ingest_memory_grows_with_metadata_not_with_pixels(tmp_path):
     # 2 KiB per extra image; streaming adds only its row of metadata (about 0.5 KiB here).
     assert per_image < 1500, f"ingest peak memory grows {per_image:.0f} bytes per image: {peaks}"
     assert per_image < side * side * 3 / 16
+
+
+# --- datasets described by a pattern or a manifest ------------------------------------------------
+
+from pathlib import Path
+
+from vtgen.stages.ingest import _decode_fast, compile_layout, near_duplicate_pairs
+from vtgen.stages.pairs import assign_splits
+
+VT60 = Path(__file__).resolve().parents[2] / "shared" / "data" / "vt60_subset"
+VT60_DATASET = {"source": "pattern", "pattern": "{modality}/{class}/{instance}/{name}.jpg",
+                "near_duplicates": {"rms": 1.5, "relative": 0.05}}
+
+
+def tiles_of(manifest: pd.DataFrame) -> pd.DataFrame:
+    """A tile table as the roi stage writes it, one full-frame tile per image (for splitting and pairing)."""
+    return manifest.assign(image_path=manifest["path"], tile_path=manifest["path"], tile_index=0, box_x=0, box_y=0,
+                           box_w=manifest["width"], box_h=manifest["height"], frame_w=manifest["width"],
+                           frame_h=manifest["height"])
+
+
+@pytest.fixture
+def vt60_root() -> Path:
+    if not VT60.is_dir():
+        pytest.skip(f"vt60 subset not found at {VT60}")
+    return VT60
+
+
+@pytest.mark.slow
+def test_vt60_described_by_a_pattern_keeps_instances_whole(vt60_root):
+    manifest, quarantine, summary = ingest_dataset(vt60_root, VT60_DATASET, workers=2, progress=False)
+    assert len(manifest) == 720 and quarantine.empty and summary["ignored_top_level_files"] == ["SOURCE.md"]
+    assert len(summary["classes"]) == 10 and summary["modalities"] == ["tactile", "visual"]
+    counts = manifest.groupby("modality").size().to_dict()
+    assert counts == {"tactile": 480, "visual": 240}  # touch -> tactile, vision -> visual
+    assert summary["translation"]["possible"]
+    # the group of every image is its instance; near-duplicate frames exist and stay in their instance's group
+    instance = manifest["class"] + "/" + manifest["path"].str.split("/").str[-2]
+    assert (manifest["group"] == instance).all()
+    dup = summary["duplicates"]
+    assert dup["near_duplicate_files"] > 0 and dup["exact_duplicate_files"] == 0
+    assert dup["groups_before_merging"] == dup["groups_after_merging"] == 20
+    assert summary["groups_per_class"] == {c: 2 for c in summary["classes"]}
+    tiles = tiles_of(manifest)
+    for seed in range(5):
+        tiles["split"], _ = assign_splits(tiles, 0.0, 0.5, seed)
+        assert (tiles.groupby(["class", "group"])["split"].nunique() == 1).all()
+        assert set(tiles.loc[tiles["split"] == "test", "group"].str.split("/").str[0]) == set(summary["classes"])
+
+
+@pytest.mark.slow
+def test_vt60_exact_and_near_duplicates_merge_their_groups(vt60_root, tmp_path):
+    # two classes linked file by file; a touch frame of 01_stapler/01 also appears under 01_stapler/02,
+    # and a re-encoded copy (PNG, one pixel changed) of a frame of 02_bottleempty/01 under 02_bottleempty/02
+    root = tmp_path / "vt60"
+    for path in sorted(vt60_root.glob("*/0[12]_*/*/*.jpg")):
+        link = root / path.relative_to(vt60_root)
+        link.parent.mkdir(parents=True, exist_ok=True)
+        link.symlink_to(path)
+    stapler = sorted((vt60_root / "touch" / "01_stapler" / "01").glob("*.jpg"))
+    (root / "touch/01_stapler/02/copy.jpg").symlink_to(stapler[0])
+    from PIL import Image
+
+    bottle = sorted((vt60_root / "touch" / "02_bottleempty" / "01").glob("*.jpg"))
+    near = np.asarray(Image.open(bottle[5])).astype(np.int16)
+    near[0, 0] += 40
+    Image.fromarray(np.clip(near, 0, 255).astype(np.uint8)).save(root / "touch/02_bottleempty/02/near.png")
+    dataset = {**VT60_DATASET, "pattern": "{modality}/{class}/{instance}/{name}.{ext}"}
+    manifest, _, summary = ingest_dataset(root, dataset, workers=2, progress=False)
+    dup = summary["duplicates"]
+    assert dup["exact_duplicate_files"] == 2  # the frame and its copy
+    assert dup["near_duplicate_files"] == 2  # the frame and its re-encoded copy
+    assert dup["groups_before_merging"] == 4 and dup["groups_after_merging"] == 2  # each class's instances merged
+    assert (manifest.groupby("class")["group"].nunique() == 1).all()
+    # without near-duplicate merging only the exact copy joins groups
+    _, _, exact_only = ingest_dataset(root, {**dataset, "near_duplicates": {"rms": 0, "relative": 0.05}}, progress=False)
+    assert exact_only["duplicates"]["groups_after_merging"] == 3
+
+
+def test_near_duplicate_rule_separates_copies_from_flat_textures():
+    rng = np.random.default_rng(0)
+    base = rng.integers(0, 256, (16, 16)).astype(np.uint8)
+    noisy = np.clip(base + rng.integers(-1, 2, (16, 16)), 0, 255).astype(np.uint8)
+    flat_a = np.full((16, 16), 120, np.uint8) + rng.integers(0, 2, (16, 16)).astype(np.uint8)
+    flat_b = np.full((16, 16), 120, np.uint8) + rng.integers(0, 2, (16, 16)).astype(np.uint8)
+    other = rng.integers(0, 256, (16, 16)).astype(np.uint8)
+    thumbs = np.stack([base, other, flat_a, noisy, flat_b])
+    # the copy with +-1 noise is found; two flat thumbnails within 1 grey level are not (no contrast to compare)
+    assert near_duplicate_pairs(thumbs, 1.5, 0.05) == [(0, 3)]
+    assert near_duplicate_pairs(thumbs, 0, 0.05) == []
+    assert near_duplicate_pairs(thumbs, 1.5, 10.0) == [(0, 3), (2, 4)]  # without the contrast rule they would be
+    many = np.repeat(base[None], 100, axis=0)  # more than one block: every pair once
+    assert len(near_duplicate_pairs(many, 1.5, 0.05)) == 100 * 99 // 2
+
+
+def write_dataset(root: Path, files: dict[str, np.ndarray]) -> Path:
+    for rel, array in files.items():
+        write_image(root / rel, array)
+    return root
+
+
+def test_duplicates_never_straddle_splits(tmp_path):
+    rng = np.random.default_rng(3)
+    files = {}
+    for i in range(12):
+        image = random_rgb(rng, 48)
+        files[f"cotton/visual/s{i:02d}.png"] = image
+        files[f"cotton/tactile/s{i:02d}.png"] = random_rgb(rng, 48)
+    # byte-identical copy of s00 under another name, and a near-identical copy of s01 (one pixel changed)
+    files["cotton/visual/copy_of_s00.png"] = files["cotton/visual/s00.png"]
+    near = files["cotton/visual/s01.png"].copy()
+    near[0, 0] ^= 1
+    files["cotton/visual/near_s01.png"] = near
+    files["wool/visual/s00.png"] = files["cotton/visual/s00.png"]  # the same bytes in another class: label noise
+    files["wool/tactile/s00.png"] = random_rgb(rng, 48)
+    root = write_dataset(tmp_path / "raw", files)
+    manifest, _, summary = ingest_dataset(root, "generic", progress=False)
+    dup = summary["duplicates"]
+    assert dup["exact_duplicate_files"] == 2 and dup["near_duplicate_files"] == 2
+    assert dup["files_identical_to_another_class"] == 1
+    assert any("different classes" in w for w in summary["warnings"])
+    group = dict(zip(manifest["path"].str.split("raw/").str[1], manifest["group"]))
+    assert group["cotton/visual/copy_of_s00.png"] == group["cotton/visual/s00.png"] == group["cotton/tactile/s00.png"]
+    assert group["cotton/visual/near_s01.png"] == group["cotton/visual/s01.png"]
+    assert group["wool/visual/s00.png"] != group["cotton/visual/s00.png"]  # never merged across classes
+    tiles = tiles_of(manifest)
+    path_split = {}
+    for seed in range(20):
+        tiles["split"], _ = assign_splits(tiles, 0.2, 0.3, seed)
+        split = dict(zip(tiles["path"].str.split("raw/").str[1], tiles["split"]))
+        assert split["cotton/visual/copy_of_s00.png"] == split["cotton/visual/s00.png"]
+        assert split["cotton/visual/near_s01.png"] == split["cotton/visual/s01.png"]
+        path_split[seed] = split["cotton/visual/s00.png"]
+    assert len(set(path_split.values())) > 1  # the merged group does move between splits with the seed
+
+
+def test_pattern_with_regex_fields_reads_a_vitac_like_layout(tmp_path):
+    rng = np.random.default_rng(0)
+    root = write_dataset(tmp_path / "raw", {
+        "11t_test/131_1.jpg": random_rgb(rng), "11t/121_2.jpg": random_rgb(rng), "11v/IMG_2460_3.jpg": random_rgb(rng),
+        "12touch/5_1.jpg": random_rgb(rng)})
+    dataset = {"source": "pattern", "pattern": "{class}{modality}{split}/{source}_{tile}.jpg",
+               "fields": {"class": r"\d+", "modality": "[a-z]+?", "split": "(?:_test)?", "frame": r"[A-Z_]*\d+"}}
+    manifest, quarantine, summary = ingest_dataset(root, dataset, progress=False)
+    rows = manifest.set_index(manifest["path"].str.split("raw/").str[1])
+    assert rows.loc["11t_test/131_1.jpg", ["class", "modality", "split"]].tolist() == ["11", "tactile", "test"]
+    assert rows.loc["11v/IMG_2460_3.jpg", ["modality", "split", "source"]].tolist() == ["visual", "train", "11/IMG_2460"]
+    assert rows.loc["12touch/5_1.jpg", "modality"] == "tactile"
+    assert quarantine.empty
+
+
+def test_pattern_mistakes_are_refused_naming_the_key(tmp_path):
+    for pattern, words in [("{modality}/{name}.jpg", "no {class} field"),
+                           ("{class}/{name}.jpg", "no {modality} field"),
+                           ("{class}/{modality/{name}.jpg", "dataset.pattern"),
+                           ("{class}/{modality:[t}/{name}.jpg", "invalid regular expression"),
+                           ("../{class}/{modality}/{name}.jpg", "relative to dataset.path")]:
+        with pytest.raises(ValueError, match=re.escape(words)):
+            compile_layout({"source": "pattern", "pattern": pattern})
+    with pytest.raises(ValueError, match="dataset.fields.class"):
+        compile_layout({"source": "pattern", "pattern": "{class}/{modality}/{name}", "fields": {"class": "("}})
+    with pytest.raises(ValueError, match="dataset.modality_aliases.depth"):
+        compile_layout({"source": "pattern", "pattern": "{class}/{modality}/{n}", "modality_aliases": {"depth": "sound"}})
+    with pytest.raises(IngestError, match="dataset.pattern: required"):
+        ingest_dataset(tmp_path, {"source": "pattern"}, progress=False)
+
+
+def test_modality_aliases_unknown_names_and_one_modality_folder(tmp_path):
+    rng = np.random.default_rng(1)
+    root = write_dataset(tmp_path / "raw", {"a/GelSight/1.png": random_rgb(rng), "a/Depth/1.png": random_rgb(rng),
+                                            "a/RGB/1.png": random_rgb(rng)})
+    manifest, quarantine, _ = ingest_dataset(root, {"source": "pattern", "pattern": "{class}/{modality}/{name}.png"},
+                                             progress=False)
+    assert sorted(manifest["modality"]) == ["tactile", "visual"]
+    assert "not a modality folder: 'Depth'" in quarantine["reason"].iloc[0]
+    manifest, quarantine, _ = ingest_dataset(root, {"source": "pattern", "pattern": "{class}/{modality}/{name}.png",
+                                                    "modality_aliases": {"depth": "visual"}}, progress=False)
+    assert len(manifest) == 3 and quarantine.empty
+    flat = write_dataset(tmp_path / "flat", {"cotton_1.png": random_rgb(rng), "wool_2.png": random_rgb(rng)})
+    manifest, _, summary = ingest_dataset(flat, {"source": "pattern", "pattern": "{class}_{name}.png",
+                                                 "modality": "touch"}, progress=False)
+    assert sorted(manifest["class"]) == ["cotton", "wool"] and set(manifest["modality"]) == {"tactile"}
+    assert not summary["translation"]["possible"] and "no usable visual" in summary["translation"]["reason"]
+
+
+def test_user_manifest_lists_the_images(tmp_path):
+    rng = np.random.default_rng(2)
+    root = write_dataset(tmp_path / "raw", {"x/1.png": random_rgb(rng), "x/2.png": random_rgb(rng),
+                                            "y/3.png": random_rgb(rng), "stray.png": random_rgb(rng)})
+    pd.DataFrame({"path": ["x/1.png", "x/2.png", "y/3.png", "missing.png"], "modality": ["touch", "camera", "t", "v"],
+                  "class": ["a", "a", "b", "b"], "pair": ["p1", "p1", "", ""], "instance": ["i1", "i1", "i2", "i2"]}
+                 ).to_csv(root / "files.csv", index=False)
+    manifest, quarantine, summary = ingest_dataset(root, {"source": "manifest", "manifest": "files.csv"}, progress=False)
+    assert sorted(manifest["modality"]) == ["tactile", "tactile", "visual"]
+    assert set(manifest.loc[manifest["class"] == "a", "pair_key"]) == {"a/p1"}
+    assert set(manifest["group"]) == {"a/i1", "b/i2"}
+    reasons = dict(zip(quarantine["path"].str.split("raw/").str[1], quarantine["reason"]))
+    assert "not listed in the manifest" in reasons["stray.png"] and "missing.png" in reasons
+    assert summary["ignored_top_level_files"] == []
+    pd.DataFrame({"file": ["x/1.png"]}).to_csv(root / "bad.csv", index=False)
+    with pytest.raises(IngestError, match=r"bad.csv lacks column\(s\) path, class, modality"):
+        ingest_dataset(root, {"source": "manifest", "manifest": "bad.csv"}, progress=False)
+
+
+def test_fast_decoding_gives_what_read_rgb8_gives(tmp_path):
+    rng = np.random.default_rng(4)
+    for name, array in [("g.jpg", rng.integers(0, 256, (20, 30), dtype=np.uint8)), ("c.png", random_rgb(rng, 17)),
+                        ("g.png", rng.integers(0, 256, (9, 5), dtype=np.uint8)), ("c.jpg", random_rgb(rng, 40))]:
+        path = write_image(tmp_path / name, array)
+        fast = _decode_fast(path.read_bytes(), str(path))
+        full = read_rgb8(path)
+        assert fast is not None, name
+        assert (fast[1], fast[2], fast[3]) == (full.note, full.channels, full.bit_depth)
+        grey = fast[0] if fast[0].ndim == 2 else fast[0]
+        assert grey.shape[:2] == full.rgb.shape[:2]
+        assert np.array_equal(fast[0] if fast[0].ndim == 3 else np.repeat(fast[0][:, :, None], 3, 2), full.rgb)
+    # anything else is left to read_rgb8
+    write_image(tmp_path / "p.png", random_rgb(rng), convert="P")
+    write_image(tmp_path / "named.png", random_rgb(rng))
+    (tmp_path / "named.png").rename(tmp_path / "named.jpg")  # PNG data named .jpg
+    assert _decode_fast((tmp_path / "p.png").read_bytes(), str(tmp_path / "p.png")) is None
+    assert _decode_fast((tmp_path / "named.jpg").read_bytes(), str(tmp_path / "named.jpg")) is None
+
+
+def test_failed_ingest_keeps_quarantine_and_summary_and_replaces_old_output(tmp_path):
+    rng = np.random.default_rng(5)
+    good = write_dataset(tmp_path / "good", {"a/visual/1.png": random_rgb(rng), "a/tactile/1.png": random_rgb(rng)})
+    out = tmp_path / "ingest"
+    run_ingest(good, "generic", out)
+    assert (out / "manifest.parquet").is_file()
+    bad = tmp_path / "bad"
+    (bad / "a" / "visual").mkdir(parents=True)
+    (bad / "a" / "visual" / "broken.png").write_bytes(b"\x89PNG not really")
+    with pytest.raises(IngestError, match="no usable images left"):
+        run_ingest(bad, "generic", out)
+    assert not (out / "manifest.parquet").exists()  # no stale manifest from the other dataset
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "failed" and "no usable images" in summary["error"] and summary["root"] == str(bad)
+    quarantine = pd.read_parquet(out / "quarantine.parquet")
+    assert list(quarantine["path"]) == [str(bad / "a" / "visual" / "broken.png")]
+    # a description error too leaves a failed summary, not the old manifest
+    run_ingest(good, "generic", out)
+    with pytest.raises(IngestError, match="dataset folder does not exist"):
+        run_ingest(tmp_path / "absent", "generic", out)
+    assert not (out / "manifest.parquet").exists()
+    assert json.loads((out / "summary.json").read_text())["status"] == "failed"

@@ -636,6 +636,15 @@ class _UnionFind:
         return True
 
 
+def _union_equal(uf: _UnionFind, codes: np.ndarray) -> None:
+    """Join every index to the first index holding the same code (codes < 0 join nothing)."""
+    codes = np.asarray(codes)
+    _, first, inverse = np.unique(codes, return_index=True, return_inverse=True)
+    for i, head in enumerate(first[inverse].tolist()):
+        if codes[i] >= 0 and head != i:
+            uf.union(head, i)
+
+
 def near_duplicate_blocks(thumbs: np.ndarray, rms: float, relative: float, index=None, block: int = 32):
     """Yield ``(rows, cols, hits)``: index arrays into ``thumbs`` (restricted to ``index`` when given)
     and a boolean matrix marking the
@@ -656,9 +665,9 @@ def near_duplicate_blocks(thumbs: np.ndarray, rms: float, relative: float, index
     flat = thumbs.reshape(len(thumbs), -1)
     d = flat.shape[1]
     means, variances = np.empty(n, np.float32), np.empty(n, np.float32)
-    for start in range(0, n, 256):  # in chunks: a float copy of every thumbnail would be 1 KiB per image
-        chunk = flat[index[start:start + 256]].astype(np.float32)
-        means[start:start + 256], variances[start:start + 256] = chunk.mean(axis=1), chunk.var(axis=1)
+    for start in range(0, n, block):  # in blocks: a float copy of every thumbnail would be 1 KiB per image
+        chunk = flat[index[start:start + block]].astype(np.float32)
+        means[start:start + block], variances[start:start + block] = chunk.mean(axis=1), chunk.var(axis=1)
     del chunk
     order = np.argsort(means, kind="stable")
     index, means, variances = index[order], means[order], variances[order]
@@ -699,20 +708,22 @@ def assign_groups(manifest: pd.DataFrame, thumbs: np.ndarray, rms: float, relati
     from scipy.sparse.csgraph import connected_components
 
     n = len(manifest)
+    if n == 0:
+        return [], {"exact_duplicate_files": 0, "near_duplicate_files": 0, "groups_before_merging": 0,
+                    "groups_after_merging": 0, "files_identical_to_another_class": 0,
+                    "near_duplicate_pairs_across_classes": 0}, []
     cls_codes, _ = pd.factorize(manifest["class"])
     md5_codes, _ = pd.factorize(manifest["md5"])
     cls = manifest["class"].to_numpy()
     keys = [f"{c}/{i}" if i else f"{c}/{s}" if s else src
             for c, i, s, src in zip(cls, manifest["instance"], manifest["session"], manifest["source"])]
     uf = _UnionFind(n)
-    first_of: dict[tuple, int] = {}
-    for i, key in enumerate(keys):
-        uf.union(first_of.setdefault(("key", cls_codes[i], key), i), i)
-    for i, pair in enumerate(manifest["pair_key"]):
-        if pair:
-            uf.union(first_of.setdefault(("pair", cls_codes[i], pair), i), i)
-    del first_of
-    groups_before = len({uf.find(i) for i in range(n)})
+    class_key = pd.Series(cls_codes).astype(str) + "\0"
+    _union_equal(uf, pd.factorize(class_key + pd.Series(keys))[0])
+    pairs = manifest["pair_key"].reset_index(drop=True)
+    _union_equal(uf, np.where(pairs != "", pd.factorize(class_key + pairs)[0], -1))
+    del class_key, pairs
+    groups_before = len(np.unique(np.fromiter((uf.find(i) for i in range(n)), dtype=np.int64, count=n)))
     warnings = []
     path_of = manifest["path"]
     # exact duplicates: merged within a class
@@ -764,9 +775,9 @@ def assign_groups(manifest: pd.DataFrame, thumbs: np.ndarray, rms: float, relati
     if cross_exact > 5 or cross_near > 5:
         warnings.append(f"in all: {cross_exact} file(s) identical to a file of another class and {cross_near} "
                         f"near-duplicate pair(s) across classes; they are not merged (a group never spans classes)")
-    roots = [int(uf.find(i)) for i in range(n)]
+    roots = np.fromiter((uf.find(i) for i in range(n)), dtype=np.int64, count=n)
     name_of: dict[int, str] = {}
-    for i, root in enumerate(roots):
+    for i, root in enumerate(roots.tolist()):
         if root not in name_of or keys[i] < name_of[root]:
             name_of[root] = keys[i]
     counts = {"exact_duplicate_files": int(exact.sum()), "near_duplicate_files": int((near & ~exact).sum()),
@@ -774,7 +785,7 @@ def assign_groups(manifest: pd.DataFrame, thumbs: np.ndarray, rms: float, relati
               "files_identical_to_another_class": cross_exact, "near_duplicate_pairs_across_classes": cross_near,
               "near_duplicate_rule": f"{THUMB}x{THUMB} greyscale thumbnails within {rms} grey levels RMS and "
                                      f"{relative} of their contrast, same class and modality"}
-    return [name_of[root] for root in roots], counts, warnings
+    return [name_of[root] for root in roots.tolist()], counts, warnings
 
 
 # --- the stage ----------------------------------------------------------------------------------
