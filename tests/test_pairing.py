@@ -3,6 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from vtgen.io.tables import PAIR_COLUMNS
 from vtgen.stages.pairs import assign_splits, build_pairs, leaked_groups as leaked_sources
 
 
@@ -110,3 +111,128 @@ def test_missing_input_modality_in_a_split_is_reported(direction):
     pairs, warnings = build_pairs(tiles, direction, seed=0)
     assert "val" not in set(pairs["split"])
     assert any("split val" in w and "left unpaired" in w for w in warnings)
+
+
+# --- pairs at any resolution, one-modality data, test-size check, leak check ----------------------
+
+import json
+
+import numpy as np
+
+from conftest import write_image
+from vtgen.stages.ingest import ingest_dataset
+from vtgen.stages.pairs import check_groups_within_one_split, run_pairing
+
+
+def tiles_of(manifest: pd.DataFrame) -> pd.DataFrame:
+    """One full-frame tile per manifest image, as the roi stage would cut with a full-frame box."""
+    return manifest.assign(image_path=manifest["path"], tile_path=manifest["path"], tile_index=0, box_x=0, box_y=0,
+                           box_w=manifest["width"], box_h=manifest["height"], frame_w=manifest["width"],
+                           frame_h=manifest["height"])
+
+
+def write_tiles(tmp_path, tiles: pd.DataFrame):
+    path = tmp_path / "roi" / "tiles.parquet"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if "tile_path" not in tiles:
+        tiles = tiles.assign(tile_path=tiles["path"])
+    tiles.drop(columns=["path"]).to_parquet(path, index=False)
+    return path
+
+
+def test_name_pairs_at_two_resolutions_stay_pairs(tmp_path):
+    rng = np.random.default_rng(0)
+    root = tmp_path / "raw"
+    for cls in ("a", "b"):
+        for i in range(10):
+            write_image(root / cls / "touch" / f"m{i}.png", rng.integers(0, 256, (60, 80), dtype=np.uint8))
+            write_image(root / cls / "camera" / f"m{i}.png", rng.integers(0, 256, (30, 30, 3), dtype=np.uint8))
+    manifest, _, summary = ingest_dataset(root, {"source": "pattern", "pattern": "{class}/{modality}/{pair}.png"},
+                                          progress=False)
+    assert summary["groups_per_class"] == {"a": 10, "b": 10}  # the pair key groups both modalities
+    tiles = tiles_of(manifest)
+    tiles["split"], _ = assign_splits(tiles, 0.1, 0.3, seed=0)
+    for direction in ("v2t", "t2v"):
+        pairs, _ = build_pairs(tiles, direction, seed=0)
+        assert len(pairs) == 20 and (pairs["pair_kind"] == "name").all() and not pairs["aligned"].any()
+        stem = lambda s: s.str.rsplit("/", n=1).str[-1]  # noqa: E731
+        assert (stem(pairs["input_path"]) == stem(pairs["target_path"])).all()
+    # the same pair key with the same frame size and box is a pixel pair
+    same = tiles.assign(frame_w=64, frame_h=64, box_w=64, box_h=64)
+    pairs, _ = build_pairs(same, "v2t", seed=0)
+    assert (pairs["pair_kind"] == "pixel").all() and pairs["aligned"].all()
+
+
+def test_name_pairs_match_tiles_by_index_when_both_have_several():
+    tiles = make_tiles({"a": 3}, aligned=True, tiles_per_image=3)
+    tiles.loc[tiles["modality"] == "tactile", "frame_w"] = 999  # different frame: not pixel-aligned
+    tiles["split"], _ = assign_splits(tiles, 0.0, 0.0, seed=0)
+    pairs, _ = build_pairs(tiles, "v2t", seed=0)
+    assert (pairs["pair_kind"] == "name").all()
+    index = lambda s: s.str.extract(r"_(\d)\.png$")[0]  # noqa: E731
+    assert (index(pairs["input_path"]) == index(pairs["target_path"])).all()
+    one = tiles[~((tiles["modality"] == "visual") & (tiles["tile_index"] > 0))]  # the input has one tile only
+    pairs, _ = build_pairs(one, "v2t", seed=0)
+    assert (pairs["pair_kind"] == "name").all() and (index(pairs["input_path"]) == "0").all()
+
+
+def test_a_group_in_two_splits_is_a_bug():
+    tiles = make_tiles({"a": 4})
+    tiles["split"] = "train"
+    check_groups_within_one_split(tiles, tiles["split"].map(lambda s: ""))
+    tiles.loc[tiles.index[0], "split"] = "test"
+    with pytest.raises(RuntimeError, match="bug: group a/0 of class a was put in several splits"):
+        check_groups_within_one_split(tiles, pd.Series("", index=tiles.index))
+
+
+def run_on(tmp_path, tiles, **pairing):
+    settings = {"val_fraction": 0.1, "test_fraction": 0.2, "seed": 0, "min_test_images": 5, "below_minimum": "warn"}
+    path = write_tiles(tmp_path, tiles)
+    summary = run_pairing(path, {**settings, **pairing}, tmp_path / "pairs")
+    return summary, {d: pd.read_parquet(tmp_path / "pairs" / f"{d}.parquet") for d in ("v2t", "t2v")}
+
+
+def test_tactile_only_data_gets_splits_and_empty_pair_tables(tmp_path):
+    rng = np.random.default_rng(1)
+    root = tmp_path / "raw"
+    for cls in ("a", "b"):
+        for i in range(10):
+            write_image(root / cls / f"{i}.png", rng.integers(0, 256, (24, 24), dtype=np.uint8))
+    manifest, _, summary = ingest_dataset(root, {"source": "pattern", "pattern": "{class}/{name}.png",
+                                                 "modality": "tactile"}, progress=False)
+    assert not summary["translation"]["possible"]
+    summary, pairs = run_on(tmp_path, tiles_of(manifest).assign(tile_path=lambda t: t["path"].str.split("raw/").str[1]),
+                            min_test_images=1)
+    assert not summary["translation"]["possible"] and "only tactile" in summary["translation"]["reason"]
+    for table in pairs.values():
+        assert table.empty and list(table.columns) == list(PAIR_COLUMNS)
+    splits = pd.read_parquet(tmp_path / "pairs" / "splits.parquet")
+    assert len(splits) == 20 and set(splits["split"]) == {"train", "val", "test"}
+    assert json.loads((tmp_path / "pairs" / "summary.json").read_text())["v2t"]["test"]["pairs"] == 0
+
+
+def test_small_test_splits_are_warned_about_or_refused(tmp_path):
+    tiles = make_tiles({"a": 10, "b": 30}, tiles_per_image=1)
+    summary, _ = run_on(tmp_path, tiles, test_fraction=0.2, min_test_images=5)
+    small = [w for w in summary["warnings"] if "min_test_images" in w]
+    assert len(small) == 1 and "a/tactile: 2 test image(s)" in small[0] and "a/visual: 2" in small[0]
+    assert "b/" not in small[0]
+    with pytest.raises(ValueError, match=r"below pairing.min_test_images = 5: a/tactile: 2 test image\(s\)"):
+        run_on(tmp_path, tiles, test_fraction=0.2, min_test_images=5, below_minimum="refuse")
+    summary, _ = run_on(tmp_path, tiles, test_fraction=0.2, min_test_images=2, below_minimum="refuse")
+    assert not any("min_test_images" in w for w in summary["warnings"])
+
+
+def test_summary_counts_pair_kinds_and_unused_promised_pairs(tmp_path):
+    tiles = make_tiles({"a": 10}, tiles_per_image=1)
+    # one view's visual image is in another group: its pair ends up a class pair unless the split agrees
+    summary, pairs = run_on(tmp_path, tiles, min_test_images=0)
+    assert summary["promised_pair_keys"] == 10
+    for direction in ("v2t", "t2v"):
+        counts = summary[direction]
+        assert sum(v["pixel"] for v in counts.values()) == 10 and sum(v["class"] for v in counts.values()) == 0
+    broken = tiles.copy()
+    broken.loc[(broken["modality"] == "visual") & (broken["source"] == "a/0"), "pair_key"] = "elsewhere"
+    summary, _ = run_on(tmp_path, broken, min_test_images=0)
+    assert summary["promised_pair_keys"] == 9
+    assert any("promises pairs" in w and "1 of 10" in w for w in summary["warnings"])
