@@ -122,7 +122,7 @@ def prepare_data(params: dict, variant: dict, default_pairs: Path, work: Path) -
                            workers=cfg["workers"])
     workers = variant["ingest"]["workers"]
     if not (data / "pairs" / "splits.parquet").is_file():
-        run_ingest(raw, variant["dataset"]["source"], data / "ingest", workers)
+        run_ingest(raw, variant["dataset"], data / "ingest", workers)
         run_roi(data / "ingest" / "manifest.parquet", variant["roi"], data / "roi", workers)
         run_pairing(data / "roi" / "tiles.parquet", variant["pairing"], data / "pairs")
     return data / "pairs"
