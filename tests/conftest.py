@@ -17,6 +17,15 @@ from PIL import Image
 
 REPO = Path(__file__).resolve().parents[1]
 VITAC = REPO.parent / "shared" / "data" / "vitac_cloth11"
+VT60 = REPO.parent / "shared" / "data" / "vt60_subset"
+
+
+@pytest.fixture
+def vt60_root() -> Path:
+    """The real VT60 subset (10 objects, round-sensor grey touch frames and RGB photos, its authors' layout)."""
+    if not VT60.is_dir():
+        pytest.skip(f"real VT60 subset not found at {VT60}")
+    return VT60
 
 
 @pytest.fixture

@@ -390,3 +390,12 @@ def test_stage_names_a_truncated_tile_in_one_line(tmp_path, monkeypatch, capsys)
     write_image(tmp_path / "data/roi/visual/felt/train3.png", np.zeros((32, 32, 3), dtype=np.uint8))  # repaired
     code, printed = run_stage_cli(tmp_path, classify_params(), capsys)
     assert code == 2 and "train/denim/train0.png: not a decodable image; rerun the generate stage (t2v)" in printed.err
+
+
+def test_wilson_interval_always_holds_the_observed_share():
+    for count in (1, 3, 7, 144, 10_000):
+        for accuracy in (0.0, 1.0, 1 / 3):
+            low, high = wilson_interval(accuracy, count)
+            assert 0.0 <= low <= accuracy <= high <= 1.0
+    assert wilson_interval(1.0, 144)[1] == 1.0 and wilson_interval(0.0, 144)[0] == 0.0
+    assert wilson_interval(0.5, 0) == (0.0, 1.0)

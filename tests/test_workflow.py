@@ -184,6 +184,59 @@ def test_real_vitac_sample_trains_and_generates_from_unaligned_pairs(tmp_path, v
     assert "only the set-to-set protocol applies" in report and "SYNTHETIC" not in report
 
 
+def test_real_vt60_subset_in_its_own_layout_runs_the_whole_main_job(tmp_path, vt60_root):
+    """A researcher's own data: 10 objects, grey 640x480 round-sensor frames beside 300x300 photos,
+    described by a path pattern; instances are the split groups; translation by class pairs."""
+    params = tiny_params(dataset={"source": "pattern", "path": str(vt60_root),
+                                  "pattern": "{modality}/{class}/{instance}/{name}.jpg"},
+                         roi={"tactile_box": "auto"})
+    project = make_project(tmp_path / "vt60", params)
+    run(["snakemake", "--cores", "2"], project)
+    ingest = json.loads((project / "data/ingest/summary.json").read_text())
+    assert len(ingest["classes"]) == 10 and ingest["kept"] == 720
+    assert ingest["duplicates"]["near_duplicate_files"] > 0  # consecutive frames of one grasp
+    # instances are the unit of splitting: each (class, instance) lies in one split, with both modalities
+    splits = pd.read_parquet(project / "data/pairs/splits.parquet")
+    manifest = pd.read_parquet(project / "data/ingest/manifest.parquet")
+    instance = {p: Path(p).parent.name for p in manifest["path"]}
+    image_of = pd.read_parquet(project / "data/roi/tiles.parquet")
+    splits["instance"] = [instance[p] for p in image_of["image_path"]]
+    assert (splits.groupby(["class", "instance"])["split"].nunique() == 1).all()
+    assert set(splits["split"]) >= {"train", "test"}
+    roi = json.loads((project / "data/roi/summary.json").read_text())
+    assert roi["channels"]["tactile"] == 1 and roi["regions"]["tactile"].get("disc", 0) >= 470
+    for direction in ("v2t", "t2v"):
+        pairs = pd.read_parquet(project / f"data/pairs/{direction}.parquet")
+        assert (pairs["pair_kind"] == "class").all()  # no touch frame is aligned with a photo
+    for modality in ("visual", "tactile"):
+        classify = json.loads((project / f"data/classify/{modality}/summary.json").read_text())
+        assert classify["status"] == "ok" and len(classify["classes"]) == 10
+        assert classify["settings"]["real"]["interval"] is not None
+    scores = json.loads((project / "data/scores/summary.json").read_text())
+    assert scores["distribution"]["t2v"]["ssim_name"] == "Colour-SSIM" and scores["distribution"]["v2t"]["ssim_name"] == "SSIM"
+    assert scores["verdicts"] and scores["synthetic"] is False
+    report = (project / "reports/summary.md").read_text()
+    assert "SYNTHETIC" not in report and "only the set-to-set protocol applies" in report
+
+
+def test_a_tactile_only_folder_runs_what_applies_and_says_why_there_is_no_translation(tmp_path, vt60_root):
+    params = tiny_params(dataset={"source": "pattern", "path": str(vt60_root / "touch"),
+                                  "pattern": "{class}/{instance}/{name}.jpg", "modality": "tactile"},
+                         roi={"tactile_box": "auto"})
+    project = make_project(tmp_path / "touch", params)
+    run(["snakemake", "--cores", "2"], project)
+    for direction in ("v2t", "t2v"):
+        train = json.loads((project / f"models/{direction}/all/train.json").read_text())
+        assert train["status"].startswith("not applicable") and not (project / f"models/{direction}/all/generator.pt").exists()
+    tactile = json.loads((project / "data/classify/tactile/summary.json").read_text())
+    assert tactile["status"] == "ok" and len(tactile["classes"]) == 10 and tactile["skipped"]  # no generated images
+    visual = json.loads((project / "data/classify/visual/summary.json").read_text())
+    assert visual["status"].startswith("not applicable")
+    assert json.loads((project / "data/scores/summary.json").read_text())["not_scored"].keys() == {"v2t", "t2v"}
+    report = (project / "reports/summary.md").read_text()
+    assert "translation needs both modalities and the data has only tactile images" in report
+
+
 # ---------------------------------------------------------------------------------------------
 # Caches that know the code, and runs that heal
 

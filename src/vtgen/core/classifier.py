@@ -174,7 +174,8 @@ def wilson_interval(accuracy: float, count: int, z: float = 1.96) -> tuple[float
     factor = 1 + z * z / count
     centre = (share + z * z / (2 * count)) / factor
     half = z / factor * math.sqrt(share * (1 - share) / count + z * z / (4 * count * count))
-    return max(0.0, centre - half), min(1.0, centre + half)
+    # rounding can put a bound one ulp inside the observed share at 0 or 1; the interval always holds it
+    return max(0.0, min(centre - half, share)), min(1.0, max(centre + half, share))
 
 
 def at_chance(accuracy: float, count: int, num_classes: int) -> bool:

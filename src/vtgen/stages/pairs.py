@@ -186,7 +186,7 @@ def run_pairing(tiles_path: str | Path, pairing: dict, out_dir: str | Path) -> d
         warnings.append(message)
     modalities = sorted(set(tiles["modality"]))
     translation = len(modalities) == 2
-    reason = "" if translation else (f"translation is impossible: the data has only {modalities[0]} images; "
+    reason = "" if translation else (f"translation needs both modalities and the data has only {modalities[0]} images; "
                                      f"the pair tables are empty, the splits serve classification")
     summary = {
         "tiles_per_split": {f"{s}/{m}": int(n) for (s, m), n in tiles.groupby(["split", "modality"]).size().items()},
