@@ -162,6 +162,36 @@ def test_kid_matches_numpy_reference():
     assert mean > 0.05  # shifted distributions
 
 
+class PassThrough(torch.nn.Module):
+    """Identity 'feature extractor', so that torchmetrics' FID and KID take precomputed features."""
+
+    def __init__(self, num_features: int):
+        super().__init__()
+        self.num_features = num_features
+
+    def forward(self, x):
+        return x
+
+
+def test_kid_equals_torchmetrics_on_the_same_subset_draws():
+    import warnings
+
+    from torchmetrics.image.kid import KernelInceptionDistance
+
+    rng = np.random.default_rng(6)
+    x, y = rng.normal(size=(40, 12)), rng.normal(0.2, 1.1, size=(33, 12))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        metric = KernelInceptionDistance(feature=PassThrough(12), subsets=25, subset_size=16)
+    metric.update(torch.from_numpy(x), real=True)
+    metric.update(torch.from_numpy(y), real=False)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(7)
+        theirs = [float(v) for v in metric.compute()]
+    ours = dist.kid(torch.from_numpy(x), torch.from_numpy(y), subsets=25, subset_size=16, seed=7)
+    assert ours == pytest.approx(theirs, rel=1e-9, abs=1e-12)
+
+
 def test_kid_is_reproducible_and_leaves_global_rng_alone():
     rng = np.random.default_rng(2)
     x, y = rng.normal(size=(30, 5)), rng.normal(size=(30, 5))
@@ -215,7 +245,7 @@ def test_fid_matches_scipy_reference_and_torchmetrics():
     y = rng.normal(0.5, 1.5, size=(150, 10)) + rng.normal(size=(150, 10)) @ rng.normal(size=(10, 10)) * 0.3
     value = dist.fid(torch.from_numpy(x), torch.from_numpy(y))
     assert value == pytest.approx(numpy_fid_reference(x, y), rel=1e-6)
-    metric = FrechetInceptionDistance(feature=dist._PassThrough(10))
+    metric = FrechetInceptionDistance(feature=PassThrough(10))
     metric.update(torch.from_numpy(x), real=True)
     metric.update(torch.from_numpy(y), real=False)
     assert value == pytest.approx(float(metric.compute()), rel=1e-6)
@@ -459,3 +489,20 @@ def test_set_to_set_colour_ssim_fails_the_ranking(vitac):
     flat = pairwise_colour_ssim(channels_last(dist.flat_colour_set(train, 1)), channels_last(test)).mean()
     assert real == pytest.approx(0.312, abs=0.002) and flat == pytest.approx(0.450, abs=0.002)
     assert flat > real
+
+
+def test_prdc_agrees_with_the_authors_package():
+    """vtgen computes PRDC itself (the package's thread pool is slow on 2 cores); same numbers as `prdc`."""
+    import contextlib
+    import io
+
+    prdc = pytest.importorskip("prdc")
+    rng = np.random.default_rng(5)
+    for n_real, n_fake, k, shift in ((12, 9, 5, 0.3), (30, 30, 5, 0.0), (5, 7, 5, 1.0), (40, 25, 3, 0.5)):
+        real = rng.normal(size=(n_real, 16))
+        fake = rng.normal(size=(n_fake, 16)) + shift
+        ours = dist.prdc_scores(real, fake, k)
+        with contextlib.redirect_stdout(io.StringIO()):
+            theirs = prdc.compute_prdc(real, fake, nearest_k=int(ours["k"]))
+        for name in ("precision", "recall", "density", "coverage"):
+            assert ours[name] == pytest.approx(float(theirs[name]), abs=1e-12), (name, n_real, n_fake)

@@ -77,6 +77,9 @@ DISTRIBUTION_METRICS = {"kid": ("KID", True), "fid": ("FID", True), "two_sample"
 VERDICT_METRICS = [("kid", "classifier"), ("kid", "random"), ("fid", "classifier"), ("fid", "random"),
                    ("two_sample", "classifier"), ("coverage", "classifier"), ("spectrum", "pixels")]
 KID_SUBSETS = 50
+# below this many images per set a two-sample accuracy's interval spans most of [0, 1] (n = 9 + 9:
+# about +-0.2), so it is not computed (a class of the default run has 6 held-out images per half)
+TWO_SAMPLE_MIN_IMAGES = 10
 SCORE_SEED = 0  # halves, subsamples and bootstrap resamples: fixed, so a rerun on the same inputs gives the same numbers
 DATA_RANGE = 255.0
 MS_SSIM_NOTE = ("not computed: vtgen.core.metrics has one SSIM implementation, the single-scale Colour-SSIM kernel, "
@@ -300,6 +303,8 @@ def _set_metrics(reference: dict, candidate: dict) -> dict[tuple[str, str], tupl
         record(view, "fid", lambda: (dist.fid(real, fake), math.nan, math.nan))
 
         def two_sample():
+            if min(len(real), len(fake)) < TWO_SAMPLE_MIN_IMAGES:
+                raise ValueError("too few images for a two-sample test")
             result = dist.two_sample_test(real, fake)
             return result.accuracy, result.low, result.high
 
@@ -316,34 +321,52 @@ def _set_metrics(reference: dict, candidate: dict) -> dict[tuple[str, str], tupl
     return out
 
 
-def distribution_direction(direction: str, sets: dict, encoders: dict, seed: int) -> tuple[pd.DataFrame, dict]:
+def _features(encoder, images: torch.Tensor) -> torch.Tensor:
+    """``dist.image_features`` of ``images``, each distinct image encoded once (the flat and mean
+    baselines repeat one image per class)."""
+    unique, inverse = torch.unique(images.flatten(1), dim=0, return_inverse=True)
+    if len(unique) == len(images):
+        return dist.image_features(encoder, images)
+    return dist.image_features(encoder, unique.reshape(-1, *images.shape[1:]))[inverse]
+
+
+def encode_sets(sets: dict, encoders: dict) -> dict:
+    """Features of every image set of a direction, computed once: {key: {view: features}} for the keys
+    of ``sets`` (candidates, ``real_test``, ``real_train``); the ``pixels`` view holds the images.
+    The training images serve only the memorisation check, which uses the classifier view and pixels."""
+    encoded = {}
+    for key, (images, *_) in sets.items():
+        views = {v: e for v, e in encoders.items() if key != "real_train" or v != "random"}
+        encoded[key] = {"pixels": images, **{view: _features(e, images) for view, e in views.items()}}
+    return encoded
+
+
+def distribution_direction(direction: str, sets: dict, encoded: dict, encoders: dict,
+                           seed: int) -> tuple[pd.DataFrame, dict]:
     """Distribution metrics of every candidate set of one direction against real held-out half B, per
-    class and over all classes (``(all)``); see the module docstring. Returns the table
-    (DISTRIBUTION_COLUMNS) and facts for summary.json (halving, blur sigma)."""
+    class and over all classes (``(all)``); see the module docstring. ``encoded`` holds the sets'
+    features (:func:`encode_sets`). Returns the table (DISTRIBUTION_COLUMNS) and facts for
+    summary.json (halving, blur sigma)."""
     test_images, test_classes, test_groups = sets["real_test"]
     in_a, by_group = heldout_halves(test_classes, test_groups, seed)
-    side = test_images.shape[-1]
-    sigma = dist.default_blur_sigma(side)
+    sigma = dist.default_blur_sigma(test_images.shape[-1])
     half_a = torch.from_numpy(in_a)
-    candidates = {("real_heldout", "-"): (test_images[half_a], test_classes[in_a]),
-                  ("blurred_real", "-"): (dist.gaussian_blur(test_images[half_a], sigma), test_classes[in_a])}
+    blurred = dist.gaussian_blur(test_images[half_a], sigma)
+    features = {("real_heldout", "-"): {v: f[half_a] for v, f in encoded["real_test"].items()},
+                ("blurred_real", "-"): {"pixels": blurred,
+                                        **{v: dist.image_features(e, blurred) for v, e in encoders.items()}}}
+    classes_of = {("real_heldout", "-"): test_classes[in_a], ("blurred_real", "-"): test_classes[in_a]}
     for key, value in sets.items():
         if isinstance(key, tuple):
-            candidates[key] = (value[0], value[1])
-    features = {name: {"pixels": images} for name, (images, _) in candidates.items()}
-    reference_images = test_images[~half_a]
-    reference = {"pixels": reference_images}
-    for view, encoder in encoders.items():
-        reference[view] = dist.image_features(encoder, reference_images)
-        for name, (images, _) in candidates.items():
-            features[name][view] = dist.image_features(encoder, images)
-    rows = []
+            features[key], classes_of[key] = encoded[key], value[1]
+    reference = {v: f[~half_a] for v, f in encoded["real_test"].items()}
     reference_classes = test_classes[~in_a]
+    rows = []
     for name in [*sorted(set(test_classes)), "(all)"]:
         ref_rows = np.ones(len(reference_classes), bool) if name == "(all)" else reference_classes == name
         limit = int(in_a.sum()) if name == "(all)" else int((test_classes[in_a] == name).sum())
         ref = {view: values[torch.from_numpy(ref_rows)] for view, values in reference.items()}
-        for (candidate, scope), (_, classes) in candidates.items():
+        for (candidate, scope), classes in classes_of.items():
             rows_of = np.ones(len(classes), bool) if name == "(all)" else classes == name
             chosen = np.flatnonzero(rows_of)
             chosen = chosen[_subsample(len(chosen), limit, np.random.default_rng([seed, len(rows)]))]
@@ -360,20 +383,17 @@ def distribution_direction(direction: str, sets: dict, encoders: dict, seed: int
     return pd.DataFrame(rows, columns=DISTRIBUTION_COLUMNS), facts
 
 
-def memorisation_direction(direction: str, sets: dict, encoders: dict) -> pd.DataFrame:
+def memorisation_direction(direction: str, sets: dict, encoded: dict) -> pd.DataFrame:
     """Memorisation of the pooled model's generated test images (MEMORISATION_COLUMNS): per class and
     over all, in each encoder's features and in pixels, beside the same rates for real held-out images."""
-    if ("generated", "all") in sets:
-        generated, gen_classes, _ = sets[("generated", "all")]
-    else:
-        generated, gen_classes, _ = next(v for k, v in sets.items() if isinstance(k, tuple) and k[0] == "generated")
-    train, train_classes, _ = sets["real_train"]
-    heldout, held_classes, _ = sets["real_test"]
-    views = {"pixels": lambda images: images.flatten(1).double()}
-    views.update({view: (lambda images, e=encoder: dist.image_features(e, images)) for view, encoder in encoders.items()})
+    key = ("generated", "all") if ("generated", "all") in sets else next(
+        k for k in sets if isinstance(k, tuple) and k[0] == "generated")
+    gen_classes, train_classes, held_classes = sets[key][1], sets["real_train"][1], sets["real_test"][1]
     rows = []
-    for view, encode in views.items():
-        g, t, h = encode(generated), encode(train), encode(heldout)
+    for view in encoded["real_train"]:
+        g, t, h = (encoded[k][view] for k in (key, "real_train", "real_test"))
+        if view == "pixels":
+            g, t, h = (x.flatten(1).double() for x in (g, t, h))
         for name in [*sorted(set(gen_classes)), "(all)"]:
             pick = (lambda c: np.ones(len(c), bool)) if name == "(all)" else (lambda c: c == name)
             gi, ti, hi = (torch.from_numpy(pick(c)) for c in (gen_classes, train_classes, held_classes))
@@ -510,11 +530,12 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
         target = DIRECTIONS[direction][1]
         encoders = load_encoders(classify_dir, target, notes)
         started = time.perf_counter()
-        table, facts[direction] = distribution_direction(direction, sets, encoders, seed)
+        encoded = encode_sets(sets, encoders)
+        table, facts[direction] = distribution_direction(direction, sets, encoded, encoders, seed)
         distributions.append(table)
         timings["distribution"] += time.perf_counter() - started
         started = time.perf_counter()
-        memorised.append(memorisation_direction(direction, sets, encoders))
+        memorised.append(memorisation_direction(direction, sets, encoded))
         timings["memorisation"] += time.perf_counter() - started
         facts[direction]["greyscale"] = _greyscale(sets["real_test"][0])
         facts[direction]["ssim_name"] = "SSIM" if facts[direction]["greyscale"] else "Colour-SSIM"
