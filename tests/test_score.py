@@ -170,3 +170,28 @@ def test_reference_levels_on_the_real_vitac_sample_match_the_published_measureme
     for name, level in (("flat_mean_colour", flat), ("mean_image", mean_image)):
         candidates = refs[name].permute(0, 2, 3, 1).numpy()
         assert pairwise_colour_ssim(candidates[:1], test, 255.0).mean() == pytest.approx(level, abs=0.0015), name
+
+
+def test_verdicts_rank_generated_only_where_real_beats_the_baselines():
+    from vtgen.stages.score import verdicts
+
+    def rows(metric, view, values):
+        return [{"direction": "v2t", "scope": "all" if c == "generated" else "-", "class": "(all)", "candidate": c,
+                 "view": view, "metric": metric, "value": v, "low": np.nan, "high": np.nan, "n": 10, "n_reference": 10}
+                for c, v in values.items()]
+
+    table = pd.DataFrame(
+        rows("kid", "classifier", {"generated": 0.2, "real_heldout": 0.0, "nearest_neighbour": 0.5, "mean_image": 0.6,
+                                   "flat_mean_colour": 0.9, "blurred_real": 0.4})
+        + rows("fid", "classifier", {"generated": 3.0, "real_heldout": 1.0, "nearest_neighbour": 2.0, "mean_image": 5.0,
+                                     "flat_mean_colour": 9.0, "blurred_real": 4.0})
+        + rows("kid", "random", {"generated": 0.3, "real_heldout": 0.5, "nearest_neighbour": 0.4, "mean_image": 0.6,
+                                 "flat_mean_colour": 0.9, "blurred_real": 0.7}))
+    found = {v["family"]: v for v in verdicts(table, pd.DataFrame(columns=["direction", "class", "view", "candidate",
+                                                                          "rate", "n"]))}
+    kid = found["KID (classifier)"]
+    assert kid["status"] == "ok" and kid["best_baseline"] == "blurred_real"
+    assert kid["position"] == pytest.approx((0.4 - 0.2) / (0.4 - 0.0))
+    assert found["FID (classifier)"]["status"] == "warning" and "nearest_neighbour" in found["FID (classifier)"]["text"]
+    # real vs real loses to the nearest neighbour: the metric cannot rank here, whatever generated scores
+    assert found["KID (random)"]["status"] == "uninformative"

@@ -429,7 +429,10 @@ def _separated(a: tuple[float, float], b: tuple[float, float]) -> bool | None:
 def verdicts(table: pd.DataFrame, memorisation: pd.DataFrame) -> list[dict]:
     """One verdict per direction and metric family (VERDICT_METRICS, memorisation) for the pooled
     model over all classes: does generated beat every trivial baseline (beyond the intervals where
-    the metric has one), and where does it sit between the best baseline (0) and real vs real (1)?"""
+    the metric has one), and where does it sit between the best baseline (0) and real vs real (1)?
+    Status: ``ok``, ``unresolved`` (better, but an interval overlaps), ``warning`` (a baseline is as
+    good or better), or ``uninformative`` (real vs real itself does not beat every baseline, so the
+    metric cannot rank on this data)."""
     result = []
     overall = table[(table["class"] == "(all)")]
     for direction in sorted(set(overall["direction"])):
@@ -453,13 +456,20 @@ def verdicts(table: pd.DataFrame, memorisation: pd.DataFrame) -> list[dict]:
                 span, gen_gap = abs(best[0] - 0.5) - abs(real[0] - 0.5), abs(best[0] - 0.5) - abs(generated[0] - 0.5)
             position = gen_gap / span if span and not math.isnan(span) and abs(span) > 1e-12 else math.nan
             family = f"{DISTRIBUTION_METRICS[metric][0]} ({view})"
-            status = "warning" if lost else "unresolved" if unresolved else "ok"
-            if lost:
+            real_lost = [c for c, v in baselines.items() if not _better(metric, real[0], v[0])]
+            status = ("uninformative" if real_lost else "warning" if lost else "unresolved" if unresolved else "ok")
+            if real_lost:
+                text = (f"{'does not beat ' + ', '.join(lost) if lost else 'beats every trivial baseline'}, but real vs "
+                        f"real does not beat {', '.join(real_lost)} either: this metric does not separate real images "
+                        f"from the baselines on this data")
+            elif lost:
                 text = f"does not beat {', '.join(lost)}"
             elif unresolved:
                 text = f"beats every trivial baseline, but its interval overlaps {', '.join(unresolved)}'s"
             else:
                 text = "beats every trivial baseline" + ("" if math.isnan(generated[1]) else " beyond the intervals")
+            if not real_lost and not math.isnan(position):
+                text += f"; it sits {position:.2f} of the way from the best baseline (0) to real vs real (1)"
             result.append({"direction": direction, "family": family, "metric": metric, "view": view, "status": status,
                            "generated": generated[0], "generated_interval": [generated[1], generated[2]],
                            "real_heldout": real[0], "best_baseline": best_name, "best_baseline_value": best[0],
