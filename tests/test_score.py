@@ -185,7 +185,9 @@ def test_verdicts_rank_generated_only_where_real_beats_the_baselines():
                                    "flat_mean_colour": 0.9, "blurred_real": 0.4})
         + rows("fid", "classifier", {"generated": 3.0, "real_heldout": 1.0, "nearest_neighbour": 2.0, "mean_image": 5.0,
                                      "flat_mean_colour": 9.0, "blurred_real": 4.0})
-        + rows("kid", "random", {"generated": 0.3, "real_heldout": 0.5, "nearest_neighbour": 0.4, "mean_image": 0.6,
+        + rows("kid", "random", {"generated": 0.3, "real_heldout": 0.5, "nearest_neighbour": 0.6, "mean_image": 0.6,
+                                 "flat_mean_colour": 0.9, "blurred_real": 0.4})
+        + rows("fid", "random", {"generated": 0.3, "real_heldout": 0.5, "nearest_neighbour": 0.4, "mean_image": 0.6,
                                  "flat_mean_colour": 0.9, "blurred_real": 0.7}))
     found = {v["family"]: v for v in verdicts(table, pd.DataFrame(columns=["direction", "class", "view", "candidate",
                                                                           "rate", "n"]))}
@@ -193,5 +195,7 @@ def test_verdicts_rank_generated_only_where_real_beats_the_baselines():
     assert kid["status"] == "ok" and kid["best_baseline"] == "blurred_real"
     assert kid["position"] == pytest.approx((0.4 - 0.2) / (0.4 - 0.0))
     assert found["FID (classifier)"]["status"] == "warning" and "nearest_neighbour" in found["FID (classifier)"]["text"]
-    # real vs real loses to the nearest neighbour: the metric cannot rank here, whatever generated scores
+    # real vs real loses to blurred real: the metric cannot rank here, whatever generated scores
     assert found["KID (random)"]["status"] == "uninformative"
+    # losing to the nearest neighbour (real training images) only is no reason to call the metric uninformative
+    assert found["FID (random)"]["status"] == "ok" and "sits" not in found["FID (classifier)"]["text"]
