@@ -121,11 +121,12 @@ sys.exit(cli.main(sys.argv[3:]))
 """
 
 IMAGE_WRITE, TABLE_WRITE, RENAME = "PIL.Image:Image.save", "pandas:DataFrame.to_parquet", "pathlib:Path.rename"
+TILE_WRITE = "vtgen.stages.roi:write_tile_png"  # the roi stage writes its tiles with OpenCV's encoder
 KILLS = {
     # stage: (command, output folder, function, the call after which the process is killed)
     "render": ("render --params params.yaml --out data/raw/synthetic", "data/raw/synthetic", IMAGE_WRITE, 5),
     "ingest": ("ingest --params params.yaml --out data/ingest", "data/ingest", TABLE_WRITE, 2),
-    "roi": ("roi --params params.yaml --manifest data/ingest/manifest.parquet --out data/roi", "data/roi", IMAGE_WRITE, 7),
+    "roi": ("roi --params params.yaml --manifest data/ingest/manifest.parquet --out data/roi", "data/roi", TILE_WRITE, 7),
     "pairs": ("pairs --params params.yaml --tiles data/roi/tiles.parquet --out data/pairs", "data/pairs", RENAME, 1),
     "train": ("train --params params.yaml --direction v2t --scope all --pairs data/pairs --out models/v2t/all",
               "models/v2t/all", RENAME, 1),
