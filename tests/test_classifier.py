@@ -228,7 +228,7 @@ def test_stage_writes_tables_summary_and_plot(tmp_path, monkeypatch):
     assert summary["test_images_per_class"] == {c: 2 for c in CLASSES}
     # the real-only classifier of the first seed is kept as the score stage's feature encoder
     from vtgen.core.classifier import predict
-    from vtgen.io.checkpoints import load_classifier
+    from vtgen.io.classifiers import load_classifier
     from vtgen.io.images import read_tiles
 
     encoder, record = load_classifier(out / "encoder.pt")

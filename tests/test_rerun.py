@@ -39,7 +39,7 @@ EVERYTHING = {"render", "ingest", "roi"} | FROM_PAIRS
 
 # dotted key, new value, stages `dvc status` reports (the ones reading the key), jobs `snakemake -n` runs
 CASES = [
-    ("classify.epochs", 3, CLASSIFY, CLASSIFY | {"report", "all"}),
+    ("classify.epochs", 3, CLASSIFY, CLASSIFY | {"score", "report", "all"}),  # score reads classify's encoder
     ("score.batch_size", 64, {"score"}, {"score", "report", "all"}),
     ("generate.train_share", 0.25, GENERATE, FROM_GENERATE),
     ("translation.log_every", 3, TRAIN | {"report"}, FROM_TRAIN),
@@ -47,7 +47,7 @@ CASES = [
     ("presets.fast.iterations", 12, TRAIN, FROM_TRAIN),
     ("presets.paper.ngf", 16, set(), set()),  # a preset that translation.preset does not select
     ("pairing.seed", 1, {"pairs"}, FROM_PAIRS),
-    ("roi.size", 24, {"roi"}, {"roi"} | FROM_PAIRS),
+    ("roi.size", 24, {"roi"} | TRAIN, {"roi"} | FROM_PAIRS),  # a model records its ROI rule
     ("synthetic.seed", 1, {"render"}, EVERYTHING),
 ]
 

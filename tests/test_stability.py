@@ -118,10 +118,11 @@ def pairs_folder(root):
             for modality in ("visual", "tactile"):
                 path = f"tiles/{modality}/{cls}/{i}.png"
                 write_image(root / path, rng.integers(0, 256, (32, 32, 3), dtype=np.uint8))
-                tiles.append({"path": path, "class": cls, "modality": modality, "source": f"{cls}/{i}", "split": "train"})
+                tiles.append({"path": path, "class": cls, "modality": modality, "source": f"{cls}/{i}",
+                              "group": f"{cls}/{i}", "split": "train"})
             rows.append({"direction": "v2t", "split": "train", "class": cls, "input_path": f"tiles/visual/{cls}/{i}.png",
                          "target_path": f"tiles/tactile/{cls}/{i}.png", "input_source": f"{cls}/{i}",
-                         "target_source": f"{cls}/{i}", "aligned": True})
+                         "target_source": f"{cls}/{i}", "aligned": True, "pair_kind": "pixel"})
     (root / "pairs").mkdir()
     pd.DataFrame(rows).to_parquet(root / "pairs/v2t.parquet")
     pd.DataFrame(tiles).to_parquet(root / "pairs/splits.parquet")

@@ -135,24 +135,3 @@ def read_state_dict(path: str | Path) -> Mapping:
         raise ValueError(f"{path}: expected a state_dict (a mapping of names to tensors), got {type(state).__name__}")
     return state
 
-
-def save_classifier(path: Path, model, classes: list[str], about: dict) -> None:
-    """The classify stage's real-only classifier of one modality (the score stage's feature encoder):
-    weights, the class names in label order, and how it was built (``model.size``, ``model.width``)."""
-    save_atomic({"state_dict": model.state_dict(), "classes": list(classes), "size": model.size,
-                 "width": model.width, **about}, path)
-
-
-def load_classifier(path: str | Path):
-    """(AlexNet in eval mode, its record) from a file written by :func:`save_classifier`; a ValueError
-    naming the file when it is not one."""
-    from vtgen.core.classifier import AlexNet
-
-    path = Path(path)
-    try:
-        saved = torch.load(path, map_location="cpu", weights_only=True)
-        model = AlexNet(len(saved["classes"]), saved["size"], saved["width"])
-        model.load_state_dict(saved["state_dict"])
-    except (OSError, RuntimeError, KeyError, TypeError, pickle.UnpicklingError) as exc:
-        raise ValueError(f"{path}: not a classifier written by the classify stage ({exc}); rerun classify") from exc
-    return model.eval(), {k: v for k, v in saved.items() if k != "state_dict"}

@@ -40,7 +40,8 @@ import torch
 from tqdm import tqdm
 
 from vtgen.core.classifier import TrainingDiverged, at_chance, predict, train_classifier, wilson_interval
-from vtgen.io.checkpoints import read_state_dict, save_classifier
+from vtgen.io.checkpoints import read_state_dict
+from vtgen.io.classifiers import save_classifier
 from vtgen.io.tables import GENERATED_COLUMNS
 from vtgen.io.images import atomic_output_dir
 from vtgen.io.tables import read_table

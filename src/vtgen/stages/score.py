@@ -54,7 +54,7 @@ from vtgen.io.images import atomic_output_dir
 from vtgen.io.tables import read_table
 from vtgen.core import distribution as dist
 from vtgen.core.metrics import bootstrap_interval, colour_ssim, grey_ssim, pairwise_colour_ssim, psnr
-from vtgen.io.checkpoints import load_classifier
+from vtgen.io.classifiers import load_classifier
 from vtgen.core.domain import DIRECTIONS
 from vtgen.io.tables import PAIR_COLUMNS, SPLIT_COLUMNS
 from vtgen.io.images import read_tiles
