@@ -68,7 +68,7 @@ def _translate(args, params) -> None:
     from vtgen.stages.generate import translate_files
 
     translate_files(args.model, args.inputs, args.out, params["translation"]["device"] if params else "cpu",
-                    args.direction, as_tiles=args.tiles)
+                    args.direction, as_tiles=args.tiles, class_name=args.class_name)
 
 
 def _score(args, params) -> None:
@@ -219,6 +219,8 @@ def build_parser() -> argparse.ArgumentParser:
     translate.add_argument("--tiles", action="store_true", help="inputs are already ROI tiles: skip the ROI rule, "
                            "only resize them to the model size")
     translate.add_argument("--direction", choices=list(DIRECTIONS), help="refuse a model of the other direction")
+    translate.add_argument("--class", dest="class_name", default=None,
+                           help="the class of every input, for a model conditioned on the class (see its train.json)")
     translate.add_argument("--params", default=None, help="params file for translation.device (default: CPU)")
     translate.set_defaults(func=_translate)
     return parser

@@ -289,14 +289,15 @@ class PatchDiscriminator(nn.Module):
         return self.model(x)
 
 
-def build_discriminator(kind: str, size: int, ndf: int, kernel: int, patch_layers: int) -> nn.Module:
-    """Discriminator of ``kind`` ("global" or "patch") for ``size`` px images with 6 input channels.
-    For "patch", ``size`` is checked to give a logit map of at least 1 x 1."""
+def build_discriminator(kind: str, size: int, ndf: int, kernel: int, patch_layers: int,
+                        in_channels: int = 6) -> nn.Module:
+    """Discriminator of ``kind`` ("global" or "patch") for ``size`` px images with ``in_channels`` input
+    channels (condition plus image). For "patch", ``size`` is checked to give a logit map of at least 1 x 1."""
     if kind == "global":
-        return GlobalDiscriminator(size, ndf=ndf, kernel=kernel)
+        return GlobalDiscriminator(size, ndf=ndf, kernel=kernel, in_channels=in_channels)
     if kind == "patch":
         check_size(size)
-        net = PatchDiscriminator(ndf=ndf, layers=patch_layers, kernel=kernel)
+        net = PatchDiscriminator(ndf=ndf, layers=patch_layers, kernel=kernel, in_channels=in_channels)
         if net.output_side(size) < 1:
             raise ValueError(
                 f"patch discriminator: size {size} is too small for patch_layers={patch_layers} with kernel {kernel}"

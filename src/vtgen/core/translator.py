@@ -27,16 +27,19 @@ class TranslatorTraining:
     Weights are drawn from torch's global generator: seed it first for a reproducible start.
     Optimisers take their multi-tensor step (fused Adam, foreach RMSprop); ``precision`` 'bf16'
     runs the forward passes under bf16 autocast (weights, losses and optimiser state stay fp32).
+    ``input_channels`` is the generator's input: the 3 image channels plus those of a
+    :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     """
 
-    def __init__(self, settings: dict, device: torch.device | str = "cpu", precision: str = "fp32") -> None:
+    def __init__(self, settings: dict, device: torch.device | str = "cpu", precision: str = "fp32",
+                 input_channels: int = 3) -> None:
         if precision not in PRECISIONS:
             raise ValueError(f"unknown precision '{precision}' (allowed: {', '.join(PRECISIONS)})")
         self.settings, self.device, self.precision = settings, torch.device(device), precision
         size, kernel = settings["size"], settings["kernel"]
-        self.generator = UNetGenerator(size, settings["ngf"], kernel).to(self.device).train()
+        self.generator = UNetGenerator(size, settings["ngf"], kernel, in_channels=input_channels).to(self.device).train()
         self.discriminator = build_discriminator(settings["discriminator"], size, settings["ndf"], kernel,
-                                                 settings["patch_layers"]).to(self.device).train()
+                                                 settings["patch_layers"], input_channels + 3).to(self.device).train()
         self.opt_g, self.opt_d = (make_optimizer(net.parameters(), settings["optimizer"], settings["lr"],
                                                  settings["betas"], multi_tensor_on=self.device.type)
                                   for net in (self.generator, self.discriminator))
@@ -50,7 +53,8 @@ class TranslatorTraining:
         return adversarial_loss(logits, real, self.settings["gan_loss"])
 
     def step(self, x: torch.Tensor, y: torch.Tensor) -> dict[str, torch.Tensor]:
-        """One iteration on a batch (inputs ``x``, targets ``y``, N x 3 x S x S in [-1, 1] on the device).
+        """One iteration on a batch (conditions ``x``, N x input_channels x S x S, and targets ``y``,
+        N x 3 x S x S, in [-1, 1] on the device).
 
         D minimises ½[L(D(x, y), real) + L(D(x, G(x)), fake)]; then, with D's weights frozen,
         G minimises L(D(x, G(x)), real) + l1_weight·|G(x) − y|₁ (pix2pix eq. 4).

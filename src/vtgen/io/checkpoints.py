@@ -11,6 +11,7 @@ from pathlib import Path
 
 import torch
 
+from vtgen.core.conditioning import Conditioning
 from vtgen.core.device import resolve_device
 from vtgen.core.domain import DIRECTIONS
 from vtgen.core.models import UNetGenerator
@@ -66,12 +67,13 @@ def input_preparation(roi: Mapping, direction: str, model_size: int, *input_tile
 
 
 def save_generator(path: Path, generator: UNetGenerator, settings: dict, direction: str, scope: str,
-                   preparation: dict | None = None) -> None:
+                   preparation: dict | None = None, conditioning: Conditioning | None = None) -> None:
     """The file `vtgen generate` and `vtgen translate` load: weights plus what is needed to rebuild the network,
-    and (from :func:`input_preparation`) how a raw image becomes this model's input."""
+    (from :func:`input_preparation`) how a raw image becomes this model's input, and its conditioning."""
     source_mod, target_mod = DIRECTIONS[direction]
     record = {"state_dict": generator.state_dict(), "settings": settings, "direction": direction, "scope": scope,
-              "input_modality": source_mod, "output_modality": target_mod}
+              "input_modality": source_mod, "output_modality": target_mod,
+              "conditioning": (conditioning or Conditioning()).record()}
     if preparation is not None:
         record["preparation"] = preparation
     save_atomic(record, path)
@@ -92,7 +94,8 @@ def _checked_preparation(saved: dict, size: int, path: Path) -> dict | None:
 def load_translator(model: str | Path, device: str = "cpu") -> tuple[UNetGenerator, dict]:
     """Load a generator written by the train stage (its folder or its generator.pt), in eval mode.
 
-    The record holds direction, scope, input_modality, output_modality, size, path and
+    The record holds direction, scope, input_modality, output_modality, size, path,
+    ``conditioning`` (a :class:`Conditioning`; ``none`` for files from before it existed) and
     ``preparation`` (see :func:`input_preparation`), which is None for model files written before
     it was recorded; ``note`` then says so (and is "" otherwise).
     """
@@ -104,9 +107,12 @@ def load_translator(model: str | Path, device: str = "cpu") -> tuple[UNetGenerat
     try:
         saved = torch.load(path, map_location="cpu", weights_only=False)
         settings = saved["settings"]
-        generator = UNetGenerator(settings["size"], settings["ngf"], settings["kernel"])
+        conditioning = Conditioning.from_record(saved.get("conditioning"))
+        generator = UNetGenerator(settings["size"], settings["ngf"], settings["kernel"],
+                                  in_channels=3 + conditioning.extra_channels)
         generator.load_state_dict(saved["state_dict"])
         meta = {k: saved[k] for k in ("direction", "scope", "input_modality", "output_modality")}
+        meta["conditioning"] = conditioning
     except (KeyError, TypeError, RuntimeError, EOFError, OSError, pickle.UnpicklingError) as exc:
         raise ValueError(f"{path}: not a vtgen generator checkpoint ({exc})") from exc
     meta["size"], meta["path"] = settings["size"], str(path)

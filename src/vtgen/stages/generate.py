@@ -21,6 +21,7 @@ import torch.nn.functional as F
 from PIL import Image
 from tqdm import tqdm
 
+from vtgen.core.conditioning import Conditioning
 from vtgen.core.gan import to_model_range, to_uint8
 from vtgen.io.images import atomic_output_dir, display_path, labelled_sheet, read_rgb8, stream_map, write_png
 from vtgen.io.tables import read_table
@@ -36,11 +37,20 @@ IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".n
 
 
 @torch.no_grad()
-def translate(generator: UNetGenerator, images: torch.Tensor, batch_size: int = 32) -> torch.Tensor:
-    """uint8 N x 3 x S x S -> uint8 N x 3 x S x S through ``generator`` (eval mode, no dropout)."""
+def translate(generator: UNetGenerator, images: torch.Tensor, batch_size: int = 32,
+              conditioning: Conditioning | None = None, labels: torch.Tensor | None = None) -> torch.Tensor:
+    """uint8 N x 3 x S x S -> uint8 N x 3 x S x S through ``generator`` (eval mode, no dropout); with a
+    ``conditioning`` other than none, ``labels`` (N class indices) says what each image is asked to be."""
     device = next(generator.parameters()).device
-    out = [to_uint8(generator(to_model_range(images[i:i + batch_size]).to(device))).cpu()
-           for i in range(0, len(images), batch_size)]
+    conditioning = conditioning or Conditioning()
+    if conditioning.kind != "none" and (labels is None or len(labels) != len(images)):
+        raise ValueError(f"a model conditioned on '{conditioning.kind}' needs one class per image")
+    out = []
+    for i in range(0, len(images), batch_size):
+        x = to_model_range(images[i:i + batch_size]).to(device)
+        if conditioning.kind != "none":
+            x = conditioning.condition(x, labels[i:i + batch_size])
+        out.append(to_uint8(generator(x)).cpu())
     return torch.cat(out) if out else images.clone()
 
 
@@ -114,7 +124,9 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
             for start in tqdm(range(0, len(rows), cfg["batch_size"]), desc=f"generate {direction}/{scope}",
                               unit="batch", disable=not progress, mininterval=1.0):
                 chunk = rows.iloc[start:start + cfg["batch_size"]]
-                outputs = translate(generator, read_tiles(list(chunk["input_path"]), meta["size"]))
+                outputs = translate(generator, read_tiles(list(chunk["input_path"]), meta["size"]),
+                                    conditioning=meta["conditioning"],
+                                    labels=meta["conditioning"].labels(list(chunk["class"])))
                 for name, image in zip(chunk["output_name"], outputs):
                     (tmp / name).parent.mkdir(parents=True, exist_ok=True)
                     write_png(tmp / name, image.permute(1, 2, 0).numpy())
@@ -122,6 +134,7 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
             rows["direction"], rows["scope"], rows["model"] = direction, scope, str(models_dir / scope / "generator.pt")
             tables.append(rows)
             summary["scopes"][scope] = {s: int((rows["split"] == s).sum()) for s in ("train", "test")}
+            summary["scopes"][scope]["conditioning"] = meta["conditioning"].kind
             summary["scopes"][scope]["with_ground_truth"] = int((rows["ground_truth_path"] != "").sum())
         table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame(columns=GENERATED_COLUMNS)
         table[GENERATED_COLUMNS].to_parquet(tmp / "generated.parquet", index=False)
@@ -251,7 +264,7 @@ def _refusal(problems: list[tuple[Path, str]], total: int) -> ValueError:
 
 def translate_files(model: str | Path, inputs: list[str | Path], out_dir: str | Path, device: str = "cpu",
                     direction: str | None = None, as_tiles: bool = False, progress: bool | None = None,
-                    batch_size: int = 32) -> list[Path]:
+                    batch_size: int = 32, class_name: str | None = None) -> list[Path]:
     """Translate user images (files, or folders searched recursively) and return the PNGs written.
 
     Each image is prepared as the model's training inputs were (:func:`prepare_input`: the ROI rule
@@ -262,11 +275,17 @@ def translate_files(model: str | Path, inputs: list[str | Path], out_dir: str | 
     share a file, one ValueError lists every such input with its reason and nothing is written.
     Outputs are staged beside ``out_dir`` and moved in only when every input succeeded.
     ``direction``, when given, must match the model. ``progress`` (default: for 20 inputs or more)
-    shows a progress bar on stderr.
+    shows a progress bar on stderr. A model conditioned on the class needs ``class_name`` (one of the
+    classes it was trained on), which every input is asked to be.
     """
     generator, meta = load_translator(model, device)
     if direction and direction != meta["direction"]:
         raise ValueError(f"{meta['path']}: model translates {meta['direction']}, not {direction}")
+    conditioning = meta["conditioning"]
+    if conditioning.kind != "none" and class_name is None:
+        raise ValueError(f"{meta['path']}: this model is conditioned on the class ({conditioning.kind}); name the "
+                         f"class of the inputs with --class (one of {', '.join(conditioning.classes)})")
+    label = conditioning.labels([class_name])[0] if conditioning.kind != "none" else None
     out_dir = Path(out_dir)
     found = collect_inputs(inputs, out_dir)
     problems = _output_collisions(found, out_dir)
@@ -293,7 +312,8 @@ def translate_files(model: str | Path, inputs: list[str | Path], out_dir: str | 
     def flush() -> None:
         if pending and not problems:
             batch = torch.from_numpy(np.stack([tile for _, tile in pending])).permute(0, 3, 1, 2).contiguous()
-            for (name, _), image in zip(pending, translate(generator, batch, batch_size)):
+            labels = None if label is None else label.repeat(len(batch))
+            for (name, _), image in zip(pending, translate(generator, batch, batch_size, conditioning, labels)):
                 (staging / name).parent.mkdir(parents=True, exist_ok=True)
                 write_png(staging / name, image.permute(1, 2, 0).numpy())
                 written.append(name)

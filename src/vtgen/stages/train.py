@@ -34,7 +34,8 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from vtgen.core.device import resolve_device
+from vtgen.core.conditioning import Conditioning, typical_images
+from vtgen.core.device import resolve_device, resolve_precision
 from vtgen.core.domain import DIRECTIONS
 from vtgen.core.gan import random_positioning, to_model_range
 from vtgen.core.models import count_parameters, UNetGenerator
@@ -126,6 +127,12 @@ def load_pair_data(pairs: pd.DataFrame, splits: pd.DataFrame, direction: str, sc
 def draw_batch(data: PairData, batch_size: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """A batch of (input, target) uint8 images; class pairs get a fresh random input of their class
     (pixel and name pairs keep their own input)."""
+    inputs, targets, _ = _draw(data, batch_size, generator)
+    return inputs, targets
+
+
+def _draw(data: PairData, batch_size: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, list[int]]:
+    """:func:`draw_batch` plus the pair index of each batch row."""
     index = torch.randint(0, len(data.targets), (batch_size,), generator=generator)
     inputs = data.inputs[index]  # advanced indexing already copies
     for row, i in enumerate(index.tolist()):
@@ -133,22 +140,27 @@ def draw_batch(data: PairData, batch_size: int, generator: torch.Generator) -> t
             pool = data.input_pool[data.classes[i]]
             if len(pool):
                 inputs[row] = data.pool_images[pool[torch.randint(0, len(pool), (1,), generator=generator)]][0]
-    return inputs, data.targets[index]
+    return inputs, data.targets[index], index.tolist()
 
 
 def prepare_batch(data: PairData, batch_size: int, noise: bool, sampler: torch.Generator,
-                  device: torch.device = torch.device("cpu")) -> tuple[torch.Tensor, torch.Tensor]:
-    """One training batch in [-1, 1] on ``device``: ``draw_batch``, scaling and (with ``noise``) random
-    positioning, every random draw from ``sampler``."""
-    inputs, targets = draw_batch(data, batch_size, sampler)
+                  device: torch.device = torch.device("cpu"),
+                  conditioning: Conditioning | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """One training batch (condition, target) in [-1, 1] on ``device``: ``draw_batch``, scaling, (with
+    ``noise``) random positioning, then ``conditioning``'s channels; every random draw from ``sampler``."""
+    inputs, targets, index = _draw(data, batch_size, sampler)
     x, y = to_model_range(inputs).to(device), to_model_range(targets).to(device)
     if noise:
         x, y = random_positioning(x, y, sampler)
+    if conditioning is not None and conditioning.kind != "none":
+        x = conditioning.condition(x, conditioning.labels([data.classes[i] for i in index]))
     return x, y
 
 
-def validation_l1(generator: UNetGenerator, validation: PairData, batch_size: int = 32) -> float:
-    """Mean |G(x) - y| on [-1, 1] over the aligned validation pairs, in eval mode (no dropout, running BN)."""
+def validation_l1(generator: UNetGenerator, validation: PairData, batch_size: int = 32,
+                  conditioning: Conditioning | None = None) -> float:
+    """Mean |G(x) - y| on [-1, 1] over the aligned validation pairs, in eval mode (no dropout, running BN);
+    ``x`` carries ``conditioning``'s channels."""
     device = next(generator.parameters()).device
     keep = validation.aligned.nonzero().flatten()
     was_training = generator.training
@@ -159,6 +171,8 @@ def validation_l1(generator: UNetGenerator, validation: PairData, batch_size: in
             index = keep[start:start + batch_size]
             x = to_model_range(validation.inputs[index]).to(device)
             y = to_model_range(validation.targets[index]).to(device)
+            if conditioning is not None and conditioning.kind != "none":
+                x = conditioning.condition(x, conditioning.labels([validation.classes[i] for i in index.tolist()]))
             total += float((generator(x).float() - y).abs().mean(dim=(1, 2, 3)).sum())
     generator.train(was_training)
     return total / len(keep)
@@ -172,6 +186,8 @@ class TrainResult:
     seconds: float
     resumed_from: int
     device: str
+    precision: str = "fp32"
+    precision_reason: str = "as set"
 
 
 @dataclass(frozen=True)
@@ -185,6 +201,7 @@ class Job:
     checkpoint: Path | None
     keys: dict
     validation: PairData | None
+    conditioning: Conditioning
 
     def remedy(self) -> str:
         return f"lower presets.{self.run.get('preset') or '<preset>'}.lr (now {self.settings['lr']:g})"
@@ -210,12 +227,16 @@ class RunState:
 
 # ---------------------------------------------------------------- resume
 
-def checkpoint_keys(settings: dict, run: dict, direction: str, scope: str, data: PairData) -> dict:
+def checkpoint_keys(settings: dict, run: dict, direction: str, scope: str, data: PairData,
+                    conditioning: Conditioning | None = None) -> dict:
     """The three things a checkpoint must match to be resumed, each a SHA-256: ``params`` (the preset without
-    ``iterations``, seed, precision, direction, scope), ``data`` (:meth:`PairData.fingerprint`) and ``code``
-    (every vtgen source file this stage runs)."""
+    ``iterations``, seed, precision, direction, scope, conditioning kind and classes), ``data``
+    (:meth:`PairData.fingerprint`, which covers the reference images, taken from the training targets) and
+    ``code`` (every vtgen source file this stage runs)."""
+    conditioning = conditioning or Conditioning()
     params = {"settings": {k: v for k, v in settings.items() if k != "iterations"}, "seed": run["seed"],
-              "precision": run["precision"], "direction": direction, "scope": scope}
+              "precision": run["precision"], "direction": direction, "scope": scope,
+              "conditioning": [conditioning.kind, list(conditioning.classes)]}
     return {"params": hashlib.sha256(json.dumps(params, sort_keys=True).encode()).hexdigest(),
             "data": data.fingerprint(), "code": code_fingerprint("vtgen.stages.train")}
 
@@ -276,13 +297,14 @@ def _fresh(job: Job) -> tuple[TranslatorTraining, torch.Generator]:
     """Networks and batch sampler at step 0, both seeded with ``translation.seed``."""
     torch.manual_seed(job.run["seed"])
     sampler = torch.Generator().manual_seed(job.run["seed"])
-    return TranslatorTraining(job.settings, job.device, job.run["precision"]), sampler
+    return TranslatorTraining(job.settings, job.device, job.run["precision"],
+                              3 + job.conditioning.extra_channels), sampler
 
 
-def _baseline(training: TranslatorTraining, validation: PairData | None) -> dict:
+def _baseline(training: TranslatorTraining, validation: PairData | None, conditioning: Conditioning) -> dict:
     """The untrained generator's weight norm and validation L1 (None without aligned validation pairs)."""
-    val = validation_l1(training.generator, validation) if validation is not None and bool(validation.aligned.any()) \
-        else None
+    val = validation_l1(training.generator, validation, conditioning=conditioning) \
+        if validation is not None and bool(validation.aligned.any()) else None
     return {"weight_norm": training.generator_norm(), "val_l1": val}
 
 
@@ -304,7 +326,7 @@ def _start(job: Job) -> tuple[TranslatorTraining, torch.Generator, RunState]:
                                                resumed_from=saved["step"], saved_step=saved["step"])
     elif reason is not None:
         print(f"train {job.label}: {reason}; training afresh")
-    return training, sampler, RunState(baseline=_baseline(training, job.validation))
+    return training, sampler, RunState(baseline=_baseline(training, job.validation, job.conditioning))
 
 
 # ---------------------------------------------------------------- checkpoints
@@ -400,7 +422,7 @@ def _window_row(losses: torch.Tensor, training: TranslatorTraining, job: Job, st
     row = {"step": state.step, **dict(zip(LOSS_NAMES, losses.mean(dim=0).tolist())),
            "images_per_s": images / max(session_seconds, 1e-9)}
     if _checkpoints_at(state.step, job) and job.validation is not None and bool(job.validation.aligned.any()):
-        row["val_l1"] = validation_l1(training.generator, job.validation)
+        row["val_l1"] = validation_l1(training.generator, job.validation, conditioning=job.conditioning)
     return row
 
 
@@ -434,21 +456,25 @@ def _end_window(window: list[torch.Tensor], training: TranslatorTraining, sample
 
 def train_translator(data: PairData, settings: dict, run: dict, direction: str, scope: str,
                      checkpoint_dir: Path | None = None, on_log=None, progress: bool = True,
-                     validation: PairData | None = None) -> TrainResult:
+                     validation: PairData | None = None, conditioning: Conditioning | None = None) -> TrainResult:
     """Train one conditional GAN on ``data`` for ``settings['iterations']`` steps of :class:`TranslatorTraining`.
 
     ``settings`` is a presets block (its keys plus batch_size, iterations, noise); ``run`` holds device,
     precision, threads, checkpoint_every, resume, log_every and seed. Losses are averaged over each
     ``log_every`` window and passed to ``on_log(row)``; at each checkpoint the row also holds ``val_l1``, the
-    L1 error on the aligned pairs of ``validation``. A non-finite or out-of-range loss or weight raises
+    L1 error on the aligned pairs of ``validation``. ``conditioning`` (default none) adds its channels to
+    every generator input. A non-finite or out-of-range loss or weight raises
     TrainingDiverged naming the step, the quantity and the last good checkpoint.
     """
     device = resolve_device(run["device"])
+    precision, precision_reason = resolve_precision(run["precision"], device)
+    run = dict(run, precision=precision)
     if device.type == "cpu":
         torch.set_num_threads(run["threads"])
     job = Job(f"{direction}/{scope}", settings, run, device,
               Path(checkpoint_dir) / CHECKPOINT_NAME if checkpoint_dir else None,
-              checkpoint_keys(settings, run, direction, scope, data), validation)
+              checkpoint_keys(settings, run, direction, scope, data, conditioning), validation,
+              conditioning or Conditioning())
     training, sampler, state = _start(job)
     for row in state.history:  # a resumed run logs the rows it inherits again, so the log is whole
         if on_log:
@@ -456,7 +482,7 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
     window, started = [], time.perf_counter()
     with _progress_bar(job, state.step, progress) as bar:
         while state.step < settings["iterations"]:
-            x, y = prepare_batch(data, settings["batch_size"], settings["noise"], sampler, device)
+            x, y = prepare_batch(data, settings["batch_size"], settings["noise"], sampler, device, job.conditioning)
             window.append(torch.stack(list(training.step(x, y).values())))
             state.step += 1
             if _logs_at(state.step, job):
@@ -471,7 +497,8 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
         raise TrainingDiverged(f"{job.label}: non-finite generator weights at step {state.step} ({_describe(bad)}); "
                                f"{state.last_good(job.checkpoint)}; {job.remedy()}")
     seconds = state.seconds_before + time.perf_counter() - started
-    return TrainResult(training.generator.cpu(), state.history, state.step, seconds, state.resumed_from, str(device))
+    return TrainResult(training.generator.cpu(), state.history, state.step, seconds, state.resumed_from, str(device),
+                       precision, precision_reason)
 
 
 def _live_logger(folder: Path):
@@ -495,13 +522,25 @@ def _live_logger(folder: Path):
     return live, log
 
 
+def build_conditioning(kind: str, pairs: pd.DataFrame, scope: str, data: PairData) -> Conditioning:
+    """The ``translation.conditioning`` of one model: its classes are those of the scope's pairs (sorted);
+    a ``reference`` is the typical training target of each class (:func:`typical_images`)."""
+    if kind == "none":
+        return Conditioning()
+    names = tuple(sorted(set(pairs_in(pairs, "train", scope)["class"])))
+    references = typical_images(data.targets, data.classes, names) if kind == "reference" else None
+    return Conditioning(kind, names, references)
+
+
 def _summary(result: TrainResult, data: PairData, validation: PairData | None, settings: dict, run: dict,
-             direction: str, scope: str) -> dict:
+             direction: str, scope: str, conditioning: Conditioning) -> dict:
     """What ``train.json`` records about one training run."""
     final = result.history[-1] if result.history else {}
     return {
         "direction": direction, "scope": scope, "preset": run["preset"], "settings": settings,
-        "precision": run["precision"], "device": result.device, "threads": run["threads"], "seed": run["seed"],
+        "conditioning": conditioning.kind, "classes": list(conditioning.classes),
+        "precision": result.precision, "precision_setting": run["precision"],
+        "precision_reason": result.precision_reason, "device": result.device, "threads": run["threads"], "seed": run["seed"],
         "training_pairs": len(data.targets), "aligned_pairs": int(data.aligned.sum()),
         "tile_size": int(data.targets.shape[-1]), "generator_parameters": count_parameters(result.generator),
         "steps": result.steps, "resumed_from_step": result.resumed_from, "wall_seconds": round(result.seconds, 2),
@@ -533,17 +572,18 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
     data = load_pair_data(pairs, splits, direction, scope, settings["size"])
     validation = (load_pair_data(pairs, splits, direction, scope, settings["size"], split="val")
                   if not pairs_in(pairs, "val", scope).empty else None)
+    conditioning = build_conditioning(run["conditioning"], pairs, scope, data)
     print(f"train {direction}/{scope}: {len(data.targets)} training pairs ({int(data.aligned.sum())} aligned), "
           f"preset '{run['preset']}' at {settings['size']} px, {settings['iterations']} iterations of batch "
-          f"{settings['batch_size']}, {run['precision']}")
+          f"{settings['batch_size']}, precision {run['precision']}, conditioning {conditioning.kind}")
     with atomic_output_dir(out_dir) as tmp:
         live, log = _live_logger(tmp / "dvclive")
         result = train_translator(data, settings, run, direction, scope, Path(checkpoint_root) / direction / scope,
-                                  on_log=log, progress=progress, validation=validation)
+                                  on_log=log, progress=progress, validation=validation, conditioning=conditioning)
         live.end()
         preparation = input_preparation(params["roi"], direction, settings["size"], data.inputs, data.pool_images)
-        save_generator(tmp / "generator.pt", result.generator, settings, direction, scope, preparation)
-        summary = _summary(result, data, validation, settings, run, direction, scope)
+        save_generator(tmp / "generator.pt", result.generator, settings, direction, scope, preparation, conditioning)
+        summary = _summary(result, data, validation, settings, run, direction, scope, conditioning)
         (tmp / "train.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"train {direction}/{scope}: {result.steps} steps in {result.seconds:.1f} s "
           f"({summary['seconds_per_iteration']:.3f} s/it) -> {out_dir}")
