@@ -11,13 +11,19 @@ Two data sets, each timed in a fresh Python process (``--repeats`` runs, median)
 
 ROI, of all images and of the tactile ones alone; settings: ``size 64``, ``tactile_box`` from ``--tactile-box`` (default ``auto``),
 ``remove_markers: true``, centre crop 0.5. Printed per data set: images/s of ingest, of ROI and of
-both (N / median wall seconds), with ``--workers`` threads (default 2).
+both (N / median wall seconds), with ``--workers`` threads (default 2), and the CPU time per image
+(process time, all threads: the work done, which other jobs on a shared machine barely change) with
+the rate it would give if the work had the cores to itself (an upper bound: it assumes the worker
+threads never wait for each other).
 
 Before/after: ``--ref REF`` also times the ``src/`` of a git ref (extracted with ``git archive``
 into a temporary folder; the working tree is not touched) in the same way, interleaved, so a busy
-machine hits both alike.
+machine hits both alike. ``--rounds N`` alternates the two N times (a fresh process each time) and
+reports the median over the rounds, so a load that changes during the run hits both alike too;
+``--only vt60`` skips the synthetic tiles (whose GelSight path takes most of the time).
 
     python benchmarks/ingest_roi.py --ref ad8e6b8 --repeats 3
+    python benchmarks/ingest_roi.py --ref HEAD --repeats 3 --rounds 3 --only vt60
     python benchmarks/ingest_roi.py --tactile-box full
 """
 
@@ -55,22 +61,22 @@ def child(root: Path, layout: str, work: Path, workers: int, repeats: int, roi: 
     dataset = "generic" if layout == "vt60" else "vitac"
     runs = []
     for repeat in range(repeats + 1):  # the first run warms imports and caches, not timed
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         manifest, _, _ = ingest_dataset(root, dataset, workers=workers, progress=False)
-        ingest_s = time.perf_counter() - start
-        start = time.perf_counter()
+        ingest_s, ingest_cpu = time.perf_counter() - start, time.process_time() - cpu
+        start, cpu = time.perf_counter(), time.process_time()
         tiles = cut_dataset_tiles(manifest, roi, work / f"tiles{repeat}", workers=workers, progress=False)
-        roi_s = time.perf_counter() - start
+        roi_s, roi_cpu = time.perf_counter() - start, time.process_time() - cpu
         assert len(tiles) >= len(manifest) - 5, (len(tiles), len(manifest))
         tactile = manifest[manifest["modality"] == "tactile"].reset_index(drop=True)
         start = time.perf_counter()
         cut_dataset_tiles(tactile, roi, work / f"tactile{repeat}", workers=workers, progress=False)
         tactile_s = time.perf_counter() - start
         if repeat:
-            runs.append((ingest_s, roi_s, tactile_s))
-    ingest_s, roi_s, tactile_s = (float(np.median(c)) for c in zip(*runs))
+            runs.append((ingest_s, roi_s, tactile_s, ingest_cpu, roi_cpu))
+    ingest_s, roi_s, tactile_s, ingest_cpu, roi_cpu = (float(np.median(c)) for c in zip(*runs))
     return {"images": len(manifest), "tactile": len(tactile), "ingest_s": ingest_s, "roi_s": roi_s,
-            "tactile_s": tactile_s}
+            "tactile_s": tactile_s, "ingest_cpu_s": ingest_cpu, "roi_cpu_s": roi_cpu}
 
 
 def measure(src: Path, root: Path, layout: str, work: Path, args) -> dict:
@@ -91,6 +97,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--tiles", type=int, default=960, help="number of synthetic 256 px tiles")
     parser.add_argument("--tactile-box", default="auto", choices=["auto", "full"])
+    parser.add_argument("--rounds", type=int, default=1, help="alternate the sources this many times (median)")
+    parser.add_argument("--only", choices=["vt60", "tiles256"], help="time one data set only")
     parser.add_argument("--child", nargs=3, metavar=("ROOT", "LAYOUT", "WORK"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     roi = {"size": 64, "tactile_box": args.tactile_box, "remove_markers": True, "visual_crop": "centre",
@@ -110,30 +118,43 @@ def main() -> None:
         sys.path.insert(0, str(REPO / "src"))
         from data_throughput import write_vitac_like
 
-        write_vitac_like(tmp / "tiles256", args.tiles)
-        if (VT60 / "touch").is_dir():
+        if args.only != "vt60":
+            write_vitac_like(tmp / "tiles256", args.tiles)
+        if (VT60 / "touch").is_dir() and args.only != "tiles256":
             link_vt60(tmp / "vt60")
         sets = {"vt60 touch, 640x480 grey (real)": (tmp / "vt60", "vt60"),
                 f"256 px tiles, half GelSight-like (synthetic)": (tmp / "tiles256", "tiles256")}
-        rows = []
+        rows, loads, runs = [], [os.getloadavg()[0]], 0
         for name, (root, layout) in sets.items():
+            if args.only and layout != args.only:
+                continue
             if not root.is_dir():
                 print(f"skipped {name}: {VT60} not found", file=sys.stderr)
                 continue
-            for label, src in sources.items():
-                r = measure(src, root, layout, tmp / f"work-{layout}-{len(rows)}", args)
-                rows.append((name, label, r))
-                print(f"{name} / {label} done", file=sys.stderr)
+            results: dict[str, list[dict]] = {label: [] for label in sources}
+            for round_ in range(args.rounds):
+                for label, src in sources.items():
+                    results[label].append(measure(src, root, layout, tmp / f"work-{layout}-{runs}", args))
+                    runs += 1
+                    loads.append(os.getloadavg()[0])
+                    print(f"{name} / {label} round {round_ + 1} done: {json.dumps(results[label][-1])}", file=sys.stderr)
+            for label, measured in results.items():
+                rows.append((name, label, {key: float(np.median([m[key] for m in measured])) for key in measured[0]}))
     print(f"ROI settings {json.dumps(roi)}; {args.workers} worker threads on {os.cpu_count()} cores; "
-          f"median of {args.repeats} runs after a warm-up, each source and data set in its own process; "
-          f"load average {os.getloadavg()[0]:.1f}")
+          f"median of {args.repeats} runs after a warm-up, each source and data set in its own process"
+          f"{f', median of {args.rounds} alternating rounds' if args.rounds > 1 else ''}; "
+          f"load average (1 min) {min(loads):.1f} to {max(loads):.1f} during the run")
     print()
-    print("| data | code | images | ingest img/s | ROI img/s | ingest+ROI img/s | ROI img/s, tactile only |")
-    print("|---|---|---:|---:|---:|---:|---:|")
+    print("| data | code | images | ingest img/s | ROI img/s | ingest+ROI img/s | ROI img/s, tactile only "
+          "| CPU ms/img ingest + ROI | ingest+ROI img/s if that CPU time had the 2 cores to itself |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
     for name, label, r in rows:
-        n = r["images"]
+        n = int(r["images"])
+        cpu = r["ingest_cpu_s"] + r["roi_cpu_s"]
         print(f"| {name} | {label} | {n} | {n / r['ingest_s']:,.0f} | {n / r['roi_s']:,.0f} | "
-              f"{n / (r['ingest_s'] + r['roi_s']):,.0f} | {r['tactile'] / r['tactile_s']:,.0f} ({r['tactile']}) |")
+              f"{n / (r['ingest_s'] + r['roi_s']):,.0f} | {r['tactile'] / r['tactile_s']:,.0f} ({int(r['tactile'])}) | "
+              f"{1e3 * r['ingest_cpu_s'] / n:.2f} + {1e3 * r['roi_cpu_s'] / n:.2f} = {1e3 * cpu / n:.2f} | "
+              f"{n * min(2, args.workers, os.cpu_count() or 1) / cpu:,.0f} |")
 
 
 if __name__ == "__main__":

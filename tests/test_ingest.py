@@ -437,3 +437,17 @@ def test_failed_ingest_keeps_quarantine_and_summary_and_replaces_old_output(tmp_
         run_ingest(tmp_path / "absent", "generic", out)
     assert not (out / "manifest.parquet").exists()
     assert json.loads((out / "summary.json").read_text())["status"] == "failed"
+
+
+def test_grey_thumbnail_equals_the_cv2_area_resize():
+    """The integer-shrink shortcut (cell sums by cv2.reduce) gives OpenCV's INTER_AREA thumbnail exactly."""
+    import cv2
+
+    from vtgen.stages.ingest import grey_thumbnail, THUMB
+
+    rng = np.random.default_rng(0)
+    for shape in [(480, 640), (640, 480), (480, 480), (240, 320), (256, 256), (48, 48), (32, 32), (300, 300), (1024, 768)]:
+        for image in (rng.integers(0, 256, shape, dtype=np.uint8), np.full(shape, 255, np.uint8),
+                      (rng.integers(0, 2, shape) * 255).astype(np.uint8), rng.integers(0, 256, (*shape, 3), dtype=np.uint8)):
+            grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+            assert np.array_equal(grey_thumbnail(image), cv2.resize(grey, (THUMB, THUMB), interpolation=cv2.INTER_AREA))

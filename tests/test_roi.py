@@ -291,7 +291,7 @@ def rendered_frames() -> list[np.ndarray]:
     return [rendered_gelsight(seed) for seed in range(6)]
 
 
-@pytest.mark.parametrize("size", [1, 3, 5, 9, 21, 41, 63])
+@pytest.mark.parametrize("size", [1, 3, 5, 9, 13, 21, 23, 25, 41, 63])
 def test_close_ellipse_equals_the_cv2_closing(size):
     rng = np.random.default_rng(size)
     for shape in [(61, 83), (8, 5), (256, 256)]:
@@ -781,3 +781,55 @@ def test_roi_stage_on_vt60_records_discs_and_one_channel(tmp_path):
         assert reason == "" and [Box(*r) for r in rows[["box_x", "box_y", "box_w", "box_h"]].itertuples(index=False)] == boxes
         for tile_path, tile in zip(rows["tile_path"], expected):
             assert np.array_equal(read_rgb8(tmp_path / "roi/tiles" / tile_path).rgb, tile)
+
+
+# --- speed-ups that must not change the results (issue 16) ------------------------------------------------
+
+
+@pytest.mark.parametrize("factor", [2, 3, 4, 8])
+def test_area_downscale_equals_the_cv2_area_resize(factor):
+    from vtgen.core.roi import _area_downscale
+
+    rng = np.random.default_rng(factor)
+    for shape in [(480, 640), (120, 160), (64, 96), (8, 8)]:
+        size = (shape[1] // factor, shape[0] // factor)
+        for image in (rng.integers(0, 256, shape, dtype=np.uint8), np.full(shape, 255, np.uint8),
+                      (rng.integers(0, 2, shape) * 255).astype(np.uint8), disc_frame(shape=shape, radius=min(shape) // 3,
+                                                                                    centre=(shape[1] // 2, shape[0] // 2))):
+            assert np.array_equal(_area_downscale(image, size), cv2.resize(image, size, interpolation=cv2.INTER_AREA))
+
+
+@pytest.mark.parametrize("remove_markers", [True, False])
+def test_grey_frames_give_the_tiles_of_their_rgb_replica(remove_markers):
+    """A grey frame stays one channel through the disc and marker work: same discs and tiles as its RGB copy."""
+    from vtgen.core.roi import image_roi
+
+    rng = np.random.default_rng(3)
+    roi = {**AUTO, "remove_markers": remove_markers}
+    inpainted = 0
+    for seed in range(12):
+        frame = disc_frame(inside=int(rng.integers(150, 240)), outside=250, centre=(320, 240), radius=200, seed=seed,
+                           texture=float(rng.uniform(0, 10)))
+        for _ in range(int(rng.integers(0, 60))):
+            centre = (int(rng.integers(200, 440)), int(rng.integers(120, 360)))
+            cv2.circle(frame, centre, int(rng.integers(2, 7)), int(rng.integers(20, 90)), -1, lineType=cv2.LINE_AA)
+        grey, rgb = image_roi(frame, "tactile", roi), image_roi(cv2.cvtColor(frame, cv2.COLOR_GRAY2RGB), "tactile", roi)
+        assert grey.region == rgb.region and grey.boxes == rgb.boxes
+        assert all(np.array_equal(a, b) for a, b in zip(grey.tiles, rgb.tiles))
+        plain = image_roi(frame, "tactile", {**roi, "remove_markers": False})
+        inpainted += not np.array_equal(plain.tiles[0], grey.tiles[0])
+    assert inpainted >= 4 if remove_markers else inpainted == 0  # the inpainting path was taken
+
+
+@needs_vt60
+def test_find_disc_on_real_frames_equals_the_direct_computation(monkeypatch):
+    """On 20 real vt60 frames the fast downscale gives exactly the discs of find_disc on cv2.resize's image."""
+    import vtgen.core.roi as core
+
+    frames = [cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) for path in VT60_TOUCH[::24]]
+    assert len(frames) == 20
+    fast = [core.find_disc(frame) for frame in frames]
+    monkeypatch.setattr(core, "_area_downscale", lambda grey, size: cv2.resize(grey, size, interpolation=cv2.INTER_AREA))
+    for frame, disc in zip(frames, fast):
+        direct = core.find_disc(frame)
+        assert disc == direct and disc.found

@@ -581,6 +581,14 @@ def _decode_fast(data: bytes, path: str) -> tuple[np.ndarray, str, int, int] | N
 def grey_thumbnail(array: np.ndarray) -> np.ndarray:
     """The THUMB x THUMB greyscale (area-averaged) thumbnail, uint8, of an (H, W) or (H, W, 3) image."""
     grey = array if array.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(array), cv2.COLOR_RGB2GRAY)
+    height, width = grey.shape
+    fy, fx = height // THUMB, width // THUMB
+    if fx >= 3 and fy >= 3 and fx * THUMB == width and fy * THUMB == height and fx * fy <= 65536:
+        # an integer shrink (640x480: 40 x 30 pixels per cell): OpenCV's INTER_AREA rounds each cell's
+        # exact sum times float32(1 / cell area), half to even; the sums by cv2.reduce, 2-3x faster
+        rows = cv2.reduce(np.ascontiguousarray(grey).reshape(height * THUMB, fx), 1, cv2.REDUCE_SUM, dtype=cv2.CV_32S)
+        sums = rows.reshape(THUMB, fy, THUMB).sum(axis=1)
+        return np.rint(sums.astype(np.float32) * np.float32(1.0 / (fx * fy))).astype(np.uint8)
     return cv2.resize(grey, (THUMB, THUMB), interpolation=cv2.INTER_AREA)
 
 
@@ -851,14 +859,20 @@ def ingest_dataset(root: str | Path, dataset: str | dict, workers: int = 2, prog
     columns: dict[str, list] = {name: [] for name in [*MANIFEST_COLUMNS, "instance", "session"]}
     thumbs = np.empty((decoded, THUMB, THUMB), dtype=np.uint8)
     kept = 0
-    for result in stream_map(_inspect, candidates, workers, decoded, "ingest", progress):
-        if "reason" in result:
-            quarantined.append(result)
-            continue
-        thumbs[kept] = result.pop("thumb")
-        kept += 1
-        for name, values in columns.items():
-            values.append(result[name])
+    # our workers are the parallelism: OpenCV's own thread pool (thumbnails) on top of them only adds contention
+    opencv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1 if workers > 1 else opencv_threads)
+    try:
+        for result in stream_map(_inspect, candidates, workers, decoded, "ingest", progress):
+            if "reason" in result:
+                quarantined.append(result)
+                continue
+            thumbs[kept] = result.pop("thumb")
+            kept += 1
+            for name, values in columns.items():
+                values.append(result[name])
+    finally:
+        cv2.setNumThreads(opencv_threads)
     del candidates
     thumbs = thumbs[:kept]
     manifest = pd.DataFrame(columns)
