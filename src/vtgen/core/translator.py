@@ -107,3 +107,21 @@ class TranslatorTraining:
         self.discriminator.load_state_dict(state["discriminator"])
         self.opt_g.load_state_dict(copy.deepcopy(state["opt_g"]))
         self.opt_d.load_state_dict(copy.deepcopy(state["opt_d"]))
+
+
+def training_step_flops(settings: dict, input_channels: int = 3, precision: str = "fp32") -> int:
+    """Floating-point operations of one :meth:`TranslatorTraining.step` (forward and backward of both networks)
+    at ``settings``' size, widths and batch, counted by ``torch.utils.flop_counter.FlopCounterMode`` on the CPU
+    (matmuls and convolutions, 2 per multiply-add). Runs one step on random data; the global RNG is restored."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    rng = torch.get_rng_state()
+    try:
+        training = TranslatorTraining(settings, "cpu", precision, input_channels)
+        size, batch = settings["size"], settings["batch_size"]
+        x, y = torch.rand(batch, input_channels, size, size) * 2 - 1, torch.rand(batch, 3, size, size) * 2 - 1
+        with FlopCounterMode(display=False) as counter:
+            training.step(x, y)
+        return int(counter.get_total_flops())
+    finally:
+        torch.set_rng_state(rng)

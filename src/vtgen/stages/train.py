@@ -37,9 +37,10 @@ from tqdm import tqdm
 from vtgen.core.conditioning import Conditioning, typical_images
 from vtgen.core.device import resolve_device, resolve_precision
 from vtgen.core.domain import DIRECTIONS
-from vtgen.core.gan import random_positioning, to_model_range
+from vtgen.core.gan import random_positioning, to_model_range, to_uint8
+from vtgen.core.metrics import colour_ssim
 from vtgen.core.models import count_parameters, UNetGenerator
-from vtgen.core.translator import LOSS_NAMES, STATE_KEYS, TranslatorTraining
+from vtgen.core.translator import LOSS_NAMES, STATE_KEYS, training_step_flops, TranslatorTraining
 from vtgen.io.checkpoints import input_preparation, save_atomic, save_generator
 from vtgen.io.images import atomic_output_dir, read_tiles
 from vtgen.io.params import model_settings
@@ -178,6 +179,65 @@ def validation_l1(generator: UNetGenerator, validation: PairData, batch_size: in
     return total / len(keep)
 
 
+@torch.no_grad()
+def validation_by_class(generator: UNetGenerator, validation: PairData, conditioning: Conditioning | None = None,
+                        batch_size: int = 32) -> dict[str, float]:
+    """Per class, a validation quality where higher is better, in eval mode: the mean aligned Colour-SSIM
+    (Wang et al. 2004, 255 range) over the class's aligned validation pairs; for a class without aligned
+    pairs, minus the mean over channels of |mean_gen - mean_real| + |std_gen - std_real| of its generated
+    and real validation targets (pixel values in [0, 1]), a set-level score of colour and contrast."""
+    device = next(generator.parameters()).device
+    was_training = generator.training
+    generator.eval()
+    outputs = []
+    for start in range(0, len(validation.inputs), batch_size):
+        x = to_model_range(validation.inputs[start:start + batch_size]).to(device)
+        if conditioning is not None and conditioning.kind != "none":
+            x = conditioning.condition(x, conditioning.labels(validation.classes[start:start + batch_size]))
+        outputs.append(to_uint8(generator(x)).cpu())
+    generator.train(was_training)
+    made = torch.cat(outputs)
+    classes = np.array(validation.classes)
+    aligned = validation.aligned.numpy()
+    scores = {}
+    for name in sorted(set(validation.classes)):
+        rows = classes == name
+        if (rows & aligned).any():
+            keep = torch.from_numpy(rows & aligned)
+            scores[name] = float(colour_ssim(made[keep].permute(0, 2, 3, 1).numpy(),
+                                             validation.targets[keep].permute(0, 2, 3, 1).numpy(), 255.0).mean())
+        else:
+            keep = torch.from_numpy(rows)
+            a, b = made[keep].double() / 255, validation.targets[keep].double() / 255
+            gap = (a.mean(dim=(0, 2, 3)) - b.mean(dim=(0, 2, 3))).abs() + (a.std(dim=(0, 2, 3)) - b.std(dim=(0, 2, 3))).abs()
+            scores[name] = -float(gap.mean())
+    return scores
+
+
+def settled_classes(history: list[dict], tolerance: float, patience: int) -> dict[str, int | None]:
+    """Early stopping per class from the ``val_by_class`` rows of ``history``.
+
+    A class has settled once its best score has risen by at most ``tolerance`` over its last ``patience``
+    evaluations; its value is then the first step whose score came within ``tolerance`` of that best
+    (what the class needed), else None (still improving)."""
+    rows = [r for r in history if "val_by_class" in r]
+    settled: dict[str, int | None] = {}
+    for name in (rows[-1]["val_by_class"] if rows else {}):
+        scores = [r["val_by_class"][name] for r in rows]
+        best = np.maximum.accumulate(scores)
+        if len(scores) > patience and best[-1] - best[-1 - patience] <= tolerance:
+            settled[name] = next(r["step"] for r, v in zip(rows, scores) if v >= best[-1] - tolerance)
+        else:
+            settled[name] = None
+    return settled
+
+
+def all_settled(history: list[dict], tolerance: float, patience: int) -> bool:
+    """True when every class of :func:`settled_classes` has settled (False before any evaluation)."""
+    settled = settled_classes(history, tolerance, patience)
+    return bool(settled) and all(v is not None for v in settled.values())
+
+
 @dataclass
 class TrainResult:
     generator: UNetGenerator
@@ -202,6 +262,12 @@ class Job:
     keys: dict
     validation: PairData | None
     conditioning: Conditioning
+    eval_every: int | None = None  # steps between per-class validations (capacity auto), else None
+    stop: object = None  # callable(history) -> bool, checked after each per-class validation
+
+    def evaluates_at(self, step: int) -> bool:
+        return bool(self.eval_every) and self.validation is not None and (
+            step % self.eval_every == 0 or step == self.settings["iterations"])
 
     def remedy(self) -> str:
         return f"lower presets.{self.run.get('preset') or '<preset>'}.lr (now {self.settings['lr']:g})"
@@ -408,11 +474,14 @@ def _check_validation(row: dict, job: Job, state: RunState) -> None:
 
 def _logs_at(step: int, job: Job) -> bool:
     run = job.run
-    return step % run["log_every"] == 0 or step % run["checkpoint_every"] == 0 or step == job.settings["iterations"]
+    return (step % run["log_every"] == 0 or step % run["checkpoint_every"] == 0 or step == job.settings["iterations"]
+            or job.evaluates_at(step))
 
 
 def _checkpoints_at(step: int, job: Job) -> bool:
-    return step % job.run["checkpoint_every"] == 0 or step == job.settings["iterations"]
+    """Checkpoint steps: every checkpoint_every, the last, and every per-class validation (so a resumed run
+    sees the history its early-stopping decision was made on)."""
+    return step % job.run["checkpoint_every"] == 0 or step == job.settings["iterations"] or job.evaluates_at(step)
 
 
 def _window_row(losses: torch.Tensor, training: TranslatorTraining, job: Job, state: RunState,
@@ -423,6 +492,8 @@ def _window_row(losses: torch.Tensor, training: TranslatorTraining, job: Job, st
            "images_per_s": images / max(session_seconds, 1e-9)}
     if _checkpoints_at(state.step, job) and job.validation is not None and bool(job.validation.aligned.any()):
         row["val_l1"] = validation_l1(training.generator, job.validation, conditioning=job.conditioning)
+    if job.evaluates_at(state.step):
+        row["val_by_class"] = validation_by_class(training.generator, job.validation, job.conditioning)
     return row
 
 
@@ -456,14 +527,17 @@ def _end_window(window: list[torch.Tensor], training: TranslatorTraining, sample
 
 def train_translator(data: PairData, settings: dict, run: dict, direction: str, scope: str,
                      checkpoint_dir: Path | None = None, on_log=None, progress: bool = True,
-                     validation: PairData | None = None, conditioning: Conditioning | None = None) -> TrainResult:
+                     validation: PairData | None = None, conditioning: Conditioning | None = None,
+                     eval_every: int | None = None, stop=None, label: str | None = None) -> TrainResult:
     """Train one conditional GAN on ``data`` for ``settings['iterations']`` steps of :class:`TranslatorTraining`.
 
     ``settings`` is a presets block (its keys plus batch_size, iterations, noise); ``run`` holds device,
     precision, threads, checkpoint_every, resume, log_every and seed. Losses are averaged over each
     ``log_every`` window and passed to ``on_log(row)``; at each checkpoint the row also holds ``val_l1``, the
     L1 error on the aligned pairs of ``validation``. ``conditioning`` (default none) adds its channels to
-    every generator input. A non-finite or out-of-range loss or weight raises
+    every generator input. With ``eval_every``, every that many steps the row also holds ``val_by_class``
+    (:func:`validation_by_class`) and training ends early once ``stop(history)`` is true (early stopping).
+    A non-finite or out-of-range loss or weight raises
     TrainingDiverged naming the step, the quantity and the last good checkpoint.
     """
     device = resolve_device(run["device"])
@@ -471,23 +545,25 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
     run = dict(run, precision=precision)
     if device.type == "cpu":
         torch.set_num_threads(run["threads"])
-    job = Job(f"{direction}/{scope}", settings, run, device,
+    job = Job(f"{direction}/{scope}{f' ({label})' if label else ''}", settings, run, device,
               Path(checkpoint_dir) / CHECKPOINT_NAME if checkpoint_dir else None,
               checkpoint_keys(settings, run, direction, scope, data, conditioning), validation,
-              conditioning or Conditioning())
+              conditioning or Conditioning(), eval_every, stop)
     training, sampler, state = _start(job)
     for row in state.history:  # a resumed run logs the rows it inherits again, so the log is whole
         if on_log:
             on_log(row)
     window, started = [], time.perf_counter()
     with _progress_bar(job, state.step, progress) as bar:
-        while state.step < settings["iterations"]:
+        stopped = bool(stop and state.history and stop(state.history))
+        while state.step < settings["iterations"] and not stopped:
             x, y = prepare_batch(data, settings["batch_size"], settings["noise"], sampler, device, job.conditioning)
             window.append(torch.stack(list(training.step(x, y).values())))
             state.step += 1
             if _logs_at(state.step, job):
                 row = _end_window(window, training, sampler, job, state, started)
                 window = []
+                stopped = bool(stop and "val_by_class" in row and stop(state.history))
                 if on_log:
                     on_log(row)
                 _show(bar, row)
@@ -520,6 +596,66 @@ def _live_logger(folder: Path):
             live.log_metric("val/l1", row["val_l1"])
 
     return live, log
+
+
+def train_capacity_auto(data: PairData, validation: PairData, settings: dict, run: dict, direction: str, scope: str,
+                        checkpoint_dir: Path | None = None, on_log=None, progress: bool = True,
+                        conditioning: Conditioning | None = None) -> tuple[TrainResult, dict, dict]:
+    """``translation.capacity: auto``: the smallest width and fewest iterations that reach the largest width's
+    validation quality, per class, for one model.
+
+    1. Width probe: every width of ``capacity.widths`` (ngf = ndf) trains ``probe_iterations`` steps; per class,
+       the width needed is the smallest whose :func:`validation_by_class` score is within ``tolerance`` of the
+       largest width's. The model takes the largest width any class needs.
+    2. Early stopping: that width's probe run continues (from its checkpoint) up to the preset's iterations,
+       validated per class every ``eval_every`` steps, and stops once every class has settled
+       (:func:`settled_classes`: its best rose by at most ``tolerance`` over ``patience`` validations).
+
+    Returns (the result, the settings of the chosen model, the ``capacity`` record of train.json: per class the
+    width needed and the step it settled at, and the compute - GFLOP from :func:`training_step_flops` and
+    seconds - against the fixed large model, the largest width trained for the preset's iterations).
+    """
+    cap = run["capacity"]
+    widths, tolerance, patience = sorted(cap["widths"]), cap["tolerance"], cap["patience"]
+    probe_steps = min(cap["probe_iterations"], settings["iterations"])
+    extra = (conditioning or Conditioning()).extra_channels
+    at = {w: dict(settings, ngf=w, ndf=w) for w in widths}
+    folder = (lambda w: Path(checkpoint_dir) / f"width_{w}") if checkpoint_dir else (lambda w: None)
+    probes, results = {}, {}
+    for width in widths:
+        result = train_translator(data, dict(at[width], iterations=probe_steps), run, direction, scope, folder(width),
+                                  progress=progress, validation=validation, conditioning=conditioning,
+                                  eval_every=probe_steps, label=f"width probe {width}")
+        probes[width] = {"val_by_class": result.history[-1]["val_by_class"], "seconds": round(result.seconds, 2)}
+        results[width] = result
+    reference = probes[widths[-1]]["val_by_class"]
+    needed = {name: next(w for w in widths if probes[w]["val_by_class"][name] >= reference[name] - tolerance)
+              for name in reference}
+    chosen = max(needed.values())
+    final = results[chosen] if probe_steps >= settings["iterations"] else train_translator(
+                             data, at[chosen], dict(run, resume=True), direction, scope, folder(chosen),
+                             on_log=on_log, progress=progress, validation=validation, conditioning=conditioning,
+                             eval_every=cap["eval_every"], stop=lambda history: all_settled(history, tolerance, patience),
+                             label=f"width {chosen}, early stopping")
+    settled = settled_classes(final.history, tolerance, patience)
+    flops = {w: training_step_flops(at[w], 3 + extra) for w in widths}
+    actual = sum(probe_steps * flops[w] for w in widths if w != chosen) + final.steps * flops[chosen]
+    fixed = settings["iterations"] * flops[widths[-1]]
+    seconds = sum(p["seconds"] for w, p in probes.items() if w != chosen) + final.seconds
+    fixed_seconds = probes[widths[-1]]["seconds"] / probe_steps * settings["iterations"]
+    record = {
+        "mode": "auto", "widths": widths, "probe_iterations": probe_steps, "eval_every": cap["eval_every"],
+        "tolerance": tolerance, "patience": patience, "metric": "validation Colour-SSIM per class (aligned pairs)",
+        "probe": {str(w): p for w, p in probes.items()}, "chosen_width": chosen, "steps": final.steps,
+        "max_iterations": settings["iterations"], "stopped_early": final.steps < settings["iterations"],
+        "per_class": {name: {"width_needed": needed[name], "settled_at_step": settled.get(name)} for name in needed},
+        "compute": {"gflop_per_step": {str(w): round(f / 1e9, 3) for w, f in flops.items()},
+                    "gflop": round(actual / 1e9, 1), "fixed_large_gflop": round(fixed / 1e9, 1),
+                    "saved_share": round(1 - actual / fixed, 3), "seconds": round(seconds, 1),
+                    "fixed_large_seconds_estimate": round(fixed_seconds, 1),
+                    "fixed_large": f"width {widths[-1]} for {settings['iterations']} iterations"},
+    }
+    return final, dict(at[chosen], iterations=final.steps), record
 
 
 def build_conditioning(kind: str, pairs: pd.DataFrame, scope: str, data: PairData) -> Conditioning:
@@ -578,12 +714,20 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
           f"{settings['batch_size']}, precision {run['precision']}, conditioning {conditioning.kind}")
     with atomic_output_dir(out_dir) as tmp:
         live, log = _live_logger(tmp / "dvclive")
-        result = train_translator(data, settings, run, direction, scope, Path(checkpoint_root) / direction / scope,
-                                  on_log=log, progress=progress, validation=validation, conditioning=conditioning)
+        checkpoints = Path(checkpoint_root) / direction / scope
+        if run["capacity"]["mode"] == "auto" and validation is not None:
+            result, settings, capacity = train_capacity_auto(data, validation, settings, run, direction, scope,
+                                                             checkpoints, log, progress, conditioning)
+        else:
+            result = train_translator(data, settings, run, direction, scope, checkpoints, on_log=log,
+                                      progress=progress, validation=validation, conditioning=conditioning)
+            capacity = {"mode": "fixed", "reason": "as set" if run["capacity"]["mode"] == "fixed" else
+                        "capacity auto needs validation pairs and this scope has none; the preset was used"}
         live.end()
         preparation = input_preparation(params["roi"], direction, settings["size"], data.inputs, data.pool_images)
         save_generator(tmp / "generator.pt", result.generator, settings, direction, scope, preparation, conditioning)
         summary = _summary(result, data, validation, settings, run, direction, scope, conditioning)
+        summary["capacity"] = capacity
         (tmp / "train.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"train {direction}/{scope}: {result.steps} steps in {result.seconds:.1f} s "
           f"({summary['seconds_per_iteration']:.3f} s/it) -> {out_dir}")

@@ -1,0 +1,55 @@
+"""Capacity auto in the train stage: width probe and per-class early stopping."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from conftest import TINY_MODEL
+from vtgen.stages.train import PairData, settled_classes, train_capacity_auto
+
+SETTINGS = dict(TINY_MODEL, gan_loss="bce", l1_weight=100.0, optimizer="adam", lr=0.002, betas=[0.5, 0.999],
+                noise=False, batch_size=4, iterations=240)
+CAPACITY = dict(mode="auto", widths=[2, 16], probe_iterations=80, eval_every=40, tolerance=0.02, patience=2)
+RUN = dict(device="cpu", precision="fp32", threads=2, checkpoint_every=10**6, resume=False, log_every=20, seed=0,
+           capacity=CAPACITY)
+
+
+def easy_and_hard(n: int, seed: int, size: int = 32) -> PairData:
+    """Class 'easy': any input -> one flat grey; class 'hard': a random fine texture -> its inverse with the
+    channels rotated (every pixel must be carried through)."""
+    rng = np.random.default_rng(seed)
+    inputs, targets, classes = [], [], []
+    for name in ("easy", "hard"):
+        for _ in range(n):
+            texture = rng.integers(0, 256, (3, size // 2, size // 2)).repeat(2, 1).repeat(2, 2).astype(np.uint8)
+            inputs.append(texture)
+            targets.append(np.full_like(texture, 128) if name == "easy" else 255 - texture[[2, 0, 1]])
+            classes.append(name)
+    x = torch.from_numpy(np.stack(inputs))
+    return PairData(x, torch.from_numpy(np.stack(targets)), classes, torch.ones(len(classes), dtype=torch.bool),
+                    x.clone(), {c: torch.tensor([i for i, k in enumerate(classes) if k == c]) for c in ("easy", "hard")})
+
+
+def test_settled_classes_waits_for_patience_and_names_the_step_needed():
+    rows = [{"step": s, "val_by_class": {"a": a, "b": b}} for s, a, b in
+            [(10, 0.50, 0.1), (20, 0.80, 0.2), (30, 0.81, 0.4), (40, 0.80, 0.6)]]
+    settled = settled_classes(rows, tolerance=0.02, patience=2)
+    assert settled == {"a": 20, "b": None}  # a: best rose 0.01 over 2 validations, first within 0.02 at step 20
+    assert settled_classes(rows[:2], 0.02, 2) == {"a": None, "b": None}  # too few validations yet
+
+
+def test_easy_class_gets_the_smaller_or_shorter_setting_and_train_json_says_so():
+    result, settings, record = train_capacity_auto(easy_and_hard(8, 0), easy_and_hard(3, 1), SETTINGS, RUN, "v2t",
+                                                   "all", progress=False)
+    easy, hard = record["per_class"]["easy"], record["per_class"]["hard"]
+    assert easy["width_needed"] <= hard["width_needed"]
+    easy_steps = easy["settled_at_step"] or record["steps"]
+    hard_steps = hard["settled_at_step"] or record["steps"]
+    assert easy_steps <= hard_steps
+    assert easy["width_needed"] < hard["width_needed"] or easy_steps < hard_steps
+    assert settings["ngf"] == record["chosen_width"] == max(easy["width_needed"], hard["width_needed"])
+    assert result.steps == record["steps"] <= SETTINGS["iterations"]
+    compute = record["compute"]
+    assert compute["gflop"] < compute["fixed_large_gflop"] and 0 < compute["saved_share"] < 1
+    assert set(record["probe"]) == {"2", "16"}
