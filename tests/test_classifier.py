@@ -86,6 +86,83 @@ def test_same_seed_same_accuracies_other_seed_other_weights():
     assert not torch.equal(same.features.conv1.weight, other.features.conv1.weight)
 
 
+def reference_training(train_x, train_y, test_x, test_y, extra_x, extra_y, settings, seed, num_classes=3):
+    """The training loop written the straightforward way (uint8 batches mirrored and scaled one at a time,
+    the default single-tensor Adam, the network run whole for the batch-norm refresh and the
+    evaluations): :func:`train_classifier` must give exactly its numbers."""
+    import math
+    import torch.nn.functional as F
+    from vtgen.core.classifier import NORM_IMAGES, scale_images
+
+    def correct_share(model, x, y):
+        model.eval()
+        with torch.no_grad():
+            predicted = model(x).argmax(dim=1)
+        return int((predicted == y).sum()) / len(y), predicted
+
+    model = make_classifier(num_classes, settings, seed)
+    optimiser = torch.optim.Adam(model.parameters(), lr=settings["lr"], foreach=False)
+    sampler, count, batch = torch.Generator().manual_seed(seed), len(train_x), settings["batch_size"]
+    test_accuracy, extra_accuracy, losses = [], [], []
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        for _ in range(settings["epochs"]):
+            model.train()
+            order = torch.randperm(count, generator=sampler)
+            mirrored = torch.rand(count, generator=sampler) < 0.5
+            total = 0.0
+            for start in range(0, count, batch):
+                index = order[start:start + batch]
+                x = torch.where(mirrored[index].view(-1, 1, 1, 1), train_x[index].flip(-1), train_x[index])
+                loss = F.cross_entropy(model(x), train_y[index])
+                optimiser.zero_grad()
+                loss.backward()
+                optimiser.step()
+                total += float(loss.detach()) * len(index)
+            losses.append(total / count)
+            norms = [m for m in model.features if isinstance(m, torch.nn.BatchNorm2d)]
+            for norm in norms:
+                norm.reset_running_stats()
+                norm.momentum = None
+            with torch.no_grad():
+                model.features(scale_images(train_x[order[:NORM_IMAGES]]))
+            for norm in norms:
+                norm.momentum = 0.1
+            share, test_predicted = correct_share(model, test_x, test_y)
+            test_accuracy.append(share)
+            extra_accuracy.append(correct_share(model, extra_x, extra_y)[0])
+    assert all(math.isfinite(v) for v in losses)
+    return test_accuracy, extra_accuracy, losses, test_predicted, model
+
+
+@pytest.mark.parametrize("prescale", [True, False])
+def test_training_gives_exactly_the_numbers_of_the_straightforward_loop(prescale, monkeypatch):
+    """Scaling every set once, the gathered mirror images, the foreach Adam, the shortened batch-norm
+    refresh and the kept final predictions change the speed only: accuracies, predictions and
+    weights are bit for bit those of the plain loop (with the per-batch fallback too)."""
+    import vtgen.core.classifier as classifier
+
+    if not prescale:
+        monkeypatch.setattr(classifier, "PRESCALE_BYTES", 0)
+    train_x, train_y = stripes(9, seed=0)  # 27 images: batches of 16 and 11
+    test_x, test_y = stripes(4, seed=1)
+    extra_x, extra_y = stripes(3, seed=2)
+    settings = dict(TINY, epochs=3)
+    run = train_classifier(train_x, train_y, test_x, test_y, 3, settings, seed=4, extra_eval={"more": (extra_x, extra_y)})
+    test_accuracy, extra_accuracy, losses, predicted, model = reference_training(
+        train_x, train_y, test_x, test_y, extra_x, extra_y, settings, seed=4)
+    assert run.test_accuracy == test_accuracy and run.extra_accuracy["more"] == extra_accuracy
+    assert run.train_loss == pytest.approx(losses, rel=1e-6)  # summed as a tensor here, as Python floats there
+    assert torch.equal(run.test_predictions, predicted)
+    assert torch.equal(run.extra_predictions["more"], model.eval()(extra_x).argmax(dim=1))
+    for (name, mine), theirs in zip(run.model.state_dict().items(), model.state_dict().values()):
+        assert torch.equal(mine, theirs), name
+    # where the time went, for the stage's images per second
+    assert run.train_images == 3 * 27 and run.eval_images == 3 * (12 + 9)
+    assert run.train_seconds > 0 and run.eval_seconds > 0 and run.norm_seconds > 0
+    assert run.train_seconds + run.eval_seconds + run.norm_seconds <= run.seconds
+
+
 def test_train_classifier_refuses_bad_sets():
     x, y = stripes(2, seed=0)
     with pytest.raises(ValueError, match="at least 2 classes"):
@@ -226,6 +303,14 @@ def test_stage_writes_tables_summary_and_plot(tmp_path, monkeypatch):
     for item in summary["comparisons"]:
         assert item["overlap"] == (item["verdict"] == "within noise (95% intervals overlap)")
     assert summary["test_images_per_class"] == {c: 2 for c in CLASSES}
+    # images per second: every image visit of every setting, seed and epoch, and every image evaluated
+    speed = summary["throughput"]
+    assert speed["train_images"] == 2 * 2 * (18 + 27 + 6 + 15)  # seeds x epochs x the settings' training images
+    assert speed["eval_images"] == 2 * 2 * (4 * 6 + 6)  # seeds x epochs x (test set per setting + GAN-test)
+    for kind in ("train", "eval"):
+        assert speed[f"{kind}_seconds"] > 0
+        assert speed[f"{kind}_images_per_second"] == pytest.approx(speed[f"{kind}_images"] / speed[f"{kind}_seconds"],
+                                                                   rel=0.02)
     # the real-only classifier of the first seed is kept as the score stage's feature encoder
     from vtgen.core.classifier import predict
     from vtgen.io.classifiers import load_classifier

@@ -38,6 +38,10 @@ MIN_SIZE = 32
 LINEAR_LAYERS = ("fc6", "fc7", "fc8")  # classifier.<name>; "the last N linear layers" counts back from fc8
 EVAL_BATCH = 256
 NORM_IMAGES = 256  # training images (a fresh random draw each epoch) that set the batch-norm statistics
+# train_classifier scales its training images (and their mirror images) once per run when they take at most
+# this many bytes as float32, and per batch otherwise (the same numbers; this only bounds the memory)
+PRESCALE_BYTES = 1 << 30
+_TEST = object()  # key of the test set among train_classifier's evaluated sets (no extra set's name can equal it)
 
 
 def first_conv(size: int) -> tuple[int, int, int]:
@@ -109,7 +113,12 @@ class AlexNet(nn.Module):
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         """uint8 N x 3 x H x W -> float logits N x num_classes."""
-        return self.classifier(torch.flatten(self.avgpool(self.features(scale_images(images))), 1))
+        return self.scaled_forward(scale_images(images))
+
+    def scaled_forward(self, scaled: torch.Tensor) -> torch.Tensor:
+        """Logits of tiles already through :func:`scale_images` (float in [-1, 1], channels-last): the
+        training loop scales its sets once rather than every batch, and gets the same numbers."""
+        return self.classifier(torch.flatten(self.avgpool(self.features(scaled)), 1))
 
 
 def make_classifier(num_classes: int, settings: Mapping, seed: int) -> AlexNet:
@@ -157,6 +166,42 @@ def apply_weights(model: AlexNet, state: Mapping, retrain_layers: int, source: s
     return {"reinitialised": reinitialised, "trainable": trainable}
 
 
+class Adam:
+    """Adam (betas 0.9 and 0.999, eps 1e-8, no weight decay) doing, op for op, what ``torch.optim.Adam``'s
+    default single-tensor step does on the CPU, so the two give the same weights bit for bit
+    (tests/test_classifier.py checks); it reuses one buffer per parameter instead of allocating two per
+    step, and does not load ``torch.optim``, whose first optimiser imports ``torch._dynamo`` (a few
+    seconds per stage process). A parameter without a gradient is skipped and its step count kept."""
+
+    def __init__(self, params, lr: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
+        self.params = list(params)
+        self.lr, (self.beta1, self.beta2), self.eps = lr, betas, eps
+        self.steps = [0] * len(self.params)
+        self.exp_avg = [torch.zeros_like(p, memory_format=torch.preserve_format) for p in self.params]
+        self.exp_avg_sq = [torch.zeros_like(p, memory_format=torch.preserve_format) for p in self.params]
+        self.denom = [torch.empty_like(p, memory_format=torch.preserve_format) for p in self.params]
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        for param in self.params:
+            param.grad = None
+
+    @torch.no_grad()
+    def step(self) -> None:
+        beta1, beta2 = self.beta1, self.beta2
+        for i, (param, exp_avg, exp_avg_sq, denom) in enumerate(zip(self.params, self.exp_avg, self.exp_avg_sq,
+                                                                     self.denom)):
+            grad = param.grad
+            if grad is None:
+                continue
+            self.steps[i] += 1
+            step = float(self.steps[i])  # torch counts in a float32 tensor: the same value up to 2**24 steps
+            exp_avg.lerp_(grad, 1 - beta1)
+            exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+            step_size = self.lr / (1 - beta1 ** step)
+            torch.sqrt(exp_avg_sq, out=denom).div_((1 - beta2 ** step) ** 0.5).add_(self.eps)
+            param.addcdiv_(exp_avg, denom, value=-step_size)
+
+
 class TrainingDiverged(RuntimeError):
     """The mean training loss of an epoch became non-finite (NaN or infinite); ``epoch``, ``seed``, ``loss`` say where."""
 
@@ -198,6 +243,17 @@ class ClassifierRun:
     seconds: float
     model: AlexNet
     weights: dict | None = field(default=None)
+    # final-epoch arg-max classes of the test set and of each extra set (the last evaluation, kept so that
+    # callers need not classify the same images again)
+    test_predictions: torch.Tensor | None = field(default=None)
+    extra_predictions: dict[str, torch.Tensor] = field(default_factory=dict)
+    # where ``seconds`` went: mini-batch training (``train_images`` image visits, all epochs), the per-epoch
+    # batch-norm refresh, and evaluation (``eval_images`` images classified, all epochs and sets)
+    train_seconds: float = 0.0
+    train_images: int = 0
+    norm_seconds: float = 0.0
+    eval_seconds: float = 0.0
+    eval_images: int = 0
 
 
 @torch.no_grad()
@@ -230,6 +286,18 @@ def accuracy(model: nn.Module, images: torch.Tensor, labels: torch.Tensor, batch
     return correct / len(images)
 
 
+@torch.inference_mode()
+def _predict_classes(model: AlexNet, images: torch.Tensor, scaled: bool, batch_size: int = EVAL_BATCH) -> torch.Tensor:
+    """Arg-max classes of ``images`` (uint8 tiles, or tiles already through :func:`scale_images` with
+    ``scaled``: the same numbers), in eval mode, batched as :func:`predict`; int64 on the images' device."""
+    was_training = model.training
+    model.eval()
+    labels = [(model.scaled_forward(batch) if scaled else model(batch)).argmax(dim=1)
+              for batch in (images[start:start + batch_size] for start in range(0, len(images), batch_size))]
+    model.train(was_training)
+    return torch.cat(labels) if labels else torch.empty(0, dtype=torch.long, device=images.device)
+
+
 def _check_set(name: str, images: torch.Tensor, labels: torch.Tensor, num_classes: int, size: int) -> None:
     if not isinstance(images, torch.Tensor) or images.dtype != torch.uint8 or images.ndim != 4 or images.shape[1] != 3:
         raise ValueError(f"{name}: expected uint8 images N x 3 x H x W, got "
@@ -250,21 +318,28 @@ def _hold_frozen_norms(model: nn.Module) -> None:
 
 
 @torch.no_grad()
-def refresh_norm_statistics(model: AlexNet, images: torch.Tensor, batch_size: int = EVAL_BATCH) -> None:
+def refresh_norm_statistics(model: AlexNet, images: torch.Tensor, batch_size: int = EVAL_BATCH,
+                            scaled: bool = False) -> None:
     """Set every trainable batch-norm layer's running mean and variance to their average over ``images``
-    under the current weights ("precise BN"), so evaluation does not use statistics that lag behind."""
+    (uint8 tiles, or tiles already through :func:`scale_images` with ``scaled``) under the current
+    weights ("precise BN"), so evaluation does not use statistics that lag behind. The layers after
+    the last such norm do not change them and are not run."""
     norms = [m for m in model.features.modules()
              if isinstance(m, nn.modules.batchnorm._BatchNorm) and any(p.requires_grad for p in m.parameters())]
     if not norms or len(images) == 0:
         return
     device = next(model.parameters()).device
+    layers = list(model.features.children())
+    last = [i for i, m in enumerate(layers) if m is norms[-1]]
+    upto = nn.Sequential(*layers[:last[0] + 1]) if last else model.features
     was_training, momenta = model.training, [m.momentum for m in norms]
     for module in norms:
         module.reset_running_stats()
         module.momentum = None  # cumulative average over the batches below
         module.train()
     for start in range(0, len(images), batch_size):
-        model.features(scale_images(images[start:start + batch_size].to(device)))
+        batch = images[start:start + batch_size].to(device)
+        upto(batch if scaled else scale_images(batch))
     for module, momentum in zip(norms, momenta):
         module.momentum = momentum
     model.train(was_training)
@@ -285,6 +360,8 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
     random derives from ``seed`` (the caller's global RNG state is left untouched), so on CPU the
     same seed gives identical accuracies. ``weights`` (a state_dict read from ``weights_source``) is applied with :func:`apply_weights`.
     A non-finite mean training loss in an epoch raises :class:`TrainingDiverged` at the end of that epoch.
+    The run keeps the final epoch's predicted classes and where its time went (``train_seconds`` for
+    ``train_images`` image visits, ``eval_seconds`` for ``eval_images`` classified, ``norm_seconds``).
     """
     if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 2:
         raise ValueError(f"classification needs at least 2 classes, got {num_classes!r}")
@@ -302,41 +379,76 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
     model = make_classifier(num_classes, settings, seed)
     loaded = apply_weights(model, weights, retrain_layers, weights_source) if weights is not None else None
     model.to(device)
-    optimiser = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=settings["lr"])
+    optimiser = Adam([p for p in model.parameters() if p.requires_grad], lr=settings["lr"])
+    started = time.perf_counter()
+    # Each set is scaled once here rather than per batch and epoch (when the scaled training images and
+    # their mirror images fit PRESCALE_BYTES). Scaling and mirroring are exact, so a batch gathered from
+    # ``bank`` (the scaled images, then their mirror images) equals, bit for bit, the batch mirrored and
+    # scaled on the fly as the fallback below does.
+    count = len(train_x)
+    prescale = (2 if flip else 1) * train_x.numel() * 4 <= PRESCALE_BYTES
     images, labels = train_x.to(device), train_y.long().to(device)
+    if prescale:
+        images = scale_images(images)
+        if flip:
+            bank = torch.cat([images, images.flip(-1)]).contiguous(memory_format=torch.channels_last)
+            images = bank[:count]  # a view: the unmirrored half, for the batch-norm refresh
+        else:
+            bank = images
+    evaluated = {name: (scale_images(x.to(device)) if prescale else x.to(device), y.long().to(device))
+                 for name, (x, y) in {_TEST: (test_x, test_y), **extra_eval}.items()}
     sampler = torch.Generator().manual_seed(seed)
-    count = len(images)
     test_accuracy, train_loss = [], []
     extra_accuracy: dict[str, list[float]] = {name: [] for name in extra_eval}
-    started = time.perf_counter()
+    predictions: dict = {}
+    train_seconds = norm_seconds = eval_seconds = 0.0
     with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
         torch.manual_seed(seed)  # dropout draws from the global generator
         for epoch in range(1, epochs + 1):
+            epoch_started = time.perf_counter()
             model.train()
             _hold_frozen_norms(model)
             order = torch.randperm(count, generator=sampler)
             mirrored = torch.rand(count, generator=sampler) < 0.5
+            order, mirrored = order.to(device), mirrored.to(device)
+            # row of each image in ``bank``: that of its mirror image (count to 2 count - 1) where drawn mirrored
+            rows = order + count * mirrored[order].long() if prescale and flip else order
             total = torch.zeros((), device=device)
             for start in range(0, count, batch_size):
-                index = order[start:start + batch_size]
-                x = images[index.to(device)]
-                if flip:
-                    x = torch.where(mirrored[index].to(device).view(-1, 1, 1, 1), x.flip(-1), x)
-                loss = F.cross_entropy(model(x), labels[index.to(device)])
+                if prescale:
+                    x = bank[rows[start:start + batch_size]]
+                else:
+                    index = order[start:start + batch_size]
+                    x = images[index]
+                    if flip:
+                        x = torch.where(mirrored[index].view(-1, 1, 1, 1), x.flip(-1), x)
+                    x = scale_images(x)
+                loss = F.cross_entropy(model.scaled_forward(x), labels[order[start:start + batch_size]])
                 optimiser.zero_grad(set_to_none=True)
                 loss.backward()
                 optimiser.step()
-                total += loss.detach() * len(index)
+                total += loss.detach() * min(batch_size, count - start)
             mean_loss = float(total) / count
             if not math.isfinite(mean_loss):
                 raise TrainingDiverged(epoch, seed, mean_loss)
             train_loss.append(mean_loss)
-            refresh_norm_statistics(model, images[order[:NORM_IMAGES].to(device)])
-            test_accuracy.append(accuracy(model, test_x, test_y))
-            for name, (x, y) in extra_eval.items():
-                extra_accuracy[name].append(accuracy(model, x, y))
+            norm_started = time.perf_counter()
+            refresh_norm_statistics(model, images[order[:NORM_IMAGES]], scaled=prescale)
+            eval_started = time.perf_counter()
+            for name, (x, y) in evaluated.items():
+                predictions[name] = _predict_classes(model, x, scaled=prescale)
+                share = int((predictions[name] == y).sum()) / len(y) if len(y) else math.nan
+                (test_accuracy if name is _TEST else extra_accuracy[name]).append(share)
+            done = time.perf_counter()
+            train_seconds += norm_started - epoch_started
+            norm_seconds += eval_started - norm_started
+            eval_seconds += done - eval_started
             if progress:
                 progress(epoch, {"train_loss": mean_loss, "test_accuracy": test_accuracy[-1],
                                  **{name: values[-1] for name, values in extra_accuracy.items()}})
     model.eval()
-    return ClassifierRun(test_accuracy, extra_accuracy, train_loss, time.perf_counter() - started, model.cpu(), loaded)
+    return ClassifierRun(test_accuracy, extra_accuracy, train_loss, time.perf_counter() - started, model.cpu(), loaded,
+                         test_predictions=predictions[_TEST].cpu() if predictions else None,
+                         extra_predictions={name: predictions[name].cpu() for name in extra_eval if predictions},
+                         train_seconds=train_seconds, train_images=count * epochs, norm_seconds=norm_seconds,
+                         eval_seconds=eval_seconds, eval_images=epochs * sum(len(y) for _, y in evaluated.values()))

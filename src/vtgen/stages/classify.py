@@ -39,7 +39,7 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from vtgen.core.classifier import TrainingDiverged, at_chance, predict, train_classifier, wilson_interval
+from vtgen.core.classifier import TrainingDiverged, at_chance, train_classifier, wilson_interval
 from vtgen.io.checkpoints import read_state_dict
 from vtgen.io.classifiers import save_classifier
 from vtgen.io.tables import GENERATED_COLUMNS
@@ -258,7 +258,8 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     them relative to the working directory). Writes accuracy.parquet and accuracy.csv (one row per
     setting, seed and epoch; columns ACCURACY_COLUMNS, gan_test_accuracy NaN outside ``real``),
     summary.json (with ``chance`` and an ``at_chance`` flag per setting and for the GAN-test, see the
-    module docstring) and curves.png; prints a warning line per flagged setting. A non-finite
+    module docstring, and ``throughput``: training and evaluation images per second) and curves.png;
+    prints a warning line per flagged setting. A non-finite
     training loss raises RuntimeError naming modality, setting, seed and epoch. With fewer than 2
     classes nothing is trained: the tables are empty and summary.json's ``status`` says why;
     otherwise ``status`` is "ok".
@@ -281,7 +282,7 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     sets = _image_sets(real, generated, classes, cfg["size"], direction, summary["notes"])
     settings, skipped = _applicable_settings(sets, modality, generated_file, summary["notes"])
     device = resolve_device(params["translation"]["device"])
-    table, predictions, encoder = _train_settings(sets, settings, cfg, modality, len(classes), device, progress)
+    table, predictions, encoder, speed = _train_settings(sets, settings, cfg, modality, len(classes), device, progress)
     per_setting, gan_test = summarise(table, len(classes), len(sets["test"][0]), len(sets["gan"][0]))
     by_class = pd.concat([
         accuracy_by_class({k: v for k, v in predictions.items() if k[0] != GAN_TEST}, sets["test"][1].numpy(), classes,
@@ -292,7 +293,8 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
                    settings=per_setting, skipped=skipped, gan_test=gan_test, comparisons=compare_settings(per_setting),
                    test_images_per_class=sets["counts"]["per_class_real_test"],
                    encoder={"file": "encoder.pt", "setting": "real", "seed": cfg["seeds"][0]},
-                   wall_seconds=round(float(table.groupby(["setting", "seed"])["seconds"].first().sum()), 2))
+                   wall_seconds=round(float(table.groupby(["setting", "seed"])["seconds"].first().sum()), 2),
+                   throughput=speed)
     with atomic_output_dir(out_dir) as tmp:
         _write_outputs(tmp, table, summary, per_setting, gan_test, None, by_class)
         save_classifier(tmp / "encoder.pt", encoder, classes,
@@ -368,7 +370,8 @@ def _train_settings(sets: dict, settings: list[str], cfg: dict, modality: str, n
                     progress: bool) -> tuple[pd.DataFrame, dict, torch.nn.Module]:
     """Train one classifier per seed and setting. Returns one accuracy row per epoch, the final predicted
     labels per (setting, seed) on the real test images (and on the generated test images under
-    ``(GAN_TEST, seed)``, by the ``real`` classifier), and the ``real`` classifier of the first seed."""
+    ``(GAN_TEST, seed)``, by the ``real`` classifier), the ``real`` classifier of the first seed, and
+    summary.json's ``throughput`` (:func:`throughput`)."""
     weights_file = cfg["weights"] or None
     if weights_file and not Path(weights_file).is_file():
         raise ValueError(f"{weights_file}: weights file not found (classify.weights; \"\" trains from scratch)")
@@ -376,6 +379,7 @@ def _train_settings(sets: dict, settings: list[str], cfg: dict, modality: str, n
     (train_x, train_y), (test_x, test_y), (gen_x, gen_y), (gan_x, gan_y) = (
         sets[k] for k in ("train", "test", "generated", "gan"))
     rows, predictions, encoder = [], {}, None
+    work = dict.fromkeys(("train", "train_seconds", "norm_seconds", "eval", "eval_seconds"), 0)
     bar = tqdm(total=len(settings) * len(cfg["seeds"]), desc=f"classify {modality}", unit="run", disable=not progress,
                dynamic_ncols=True)
     for seed in cfg["seeds"]:
@@ -402,11 +406,16 @@ def _train_settings(sets: dict, settings: list[str], cfg: dict, modality: str, n
                 raise RuntimeError(f"classify {modality}: setting '{setting}', seed {seed}: the training loss became "
                                    f"non-finite ({exc.loss}) in epoch {exc.epoch}; lower classify.lr "
                                    f"(now {cfg['lr']:g})") from exc
-            predictions[(setting, seed)] = predict(run.model, test_x).numpy()
+            # the final epoch's evaluation already classified these images with this model
+            predictions[(setting, seed)] = run.test_predictions.numpy()
+            for name, value in (("train", run.train_images), ("train_seconds", run.train_seconds),
+                                ("norm_seconds", run.norm_seconds), ("eval", run.eval_images),
+                                ("eval_seconds", run.eval_seconds)):
+                work[name] += value
             if setting == "real":
                 encoder = encoder or run.model
                 if len(gan_x):
-                    predictions[(GAN_TEST, seed)] = predict(run.model, gan_x).numpy()
+                    predictions[(GAN_TEST, seed)] = run.extra_predictions["gan_test"].numpy()
             gan = run.extra_accuracy.get("gan_test", [math.nan] * len(run.test_accuracy))
             for epoch, (acc, gan_acc) in enumerate(zip(run.test_accuracy, gan), start=1):
                 rows.append({"modality": modality, "setting": setting, "seed": seed, "epoch": epoch,
@@ -416,7 +425,21 @@ def _train_settings(sets: dict, settings: list[str], cfg: dict, modality: str, n
                              "seconds": run.seconds})
             bar.update(1)
     bar.close()
-    return pd.DataFrame(rows, columns=list(ACCURACY_COLUMNS)), predictions, encoder
+    return pd.DataFrame(rows, columns=list(ACCURACY_COLUMNS)), predictions, encoder, throughput(work)
+
+
+def throughput(work: dict) -> dict:
+    """summary.json's ``throughput``: training image visits (all settings, seeds, epochs) and their seconds of
+    mini-batch training, images classified in the per-epoch evaluations (test and GAN-test sets) and their
+    seconds, the seconds of the per-epoch batch-norm refresh, and the images per second of each."""
+    def rate(images, seconds):
+        return round(images / seconds, 1) if seconds > 0 else None
+
+    return {"train_images": int(work["train"]), "train_seconds": round(work["train_seconds"], 2),
+            "train_images_per_second": rate(work["train"], work["train_seconds"]),
+            "eval_images": int(work["eval"]), "eval_seconds": round(work["eval_seconds"], 2),
+            "eval_images_per_second": rate(work["eval"], work["eval_seconds"]),
+            "norm_refresh_seconds": round(work["norm_seconds"], 2)}
 
 
 def _print_result(summary: dict, modality: str, seeds: int, out_dir: Path) -> None:
@@ -430,4 +453,10 @@ def _print_result(summary: dict, modality: str, seeds: int, out_dir: Path) -> No
         print(f"classify {modality}: {item['setting']} vs {item['against']}: {item['difference']:+.3f}, "
               f"{item['verdict']} (n = {summary['counts']['real_test']} test images)")
     print(f"classify {modality}: final test accuracy over {seeds} seed(s): {finals}{gan_text} "
-          f"({len(summary['classes'])} classes, {summary['wall_seconds']:.0f} s training) -> {out_dir}")
+          f"({len(summary['classes'])} classes, {summary['wall_seconds']:.0f} s training; {_speed_text(summary)}) -> {out_dir}")
+
+
+def _speed_text(summary: dict) -> str:
+    speed = summary["throughput"]
+    return (f"{speed['train_images_per_second'] or 0:.0f} training images/s, "
+            f"{speed['eval_images_per_second'] or 0:.0f} evaluation images/s")
