@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 import yaml
 
-from vtgen.core.classifier import predict, scale_images, wilson_interval
+from vtgen.core.classifier import predict, wilson_interval
 from vtgen.core.domain import DIRECTIONS
 from vtgen.core.metrics import colour_ssim
 from vtgen.io.classifiers import load_classifier
@@ -47,14 +47,14 @@ def parse_variant(text: str) -> tuple[str, dict]:
 
 
 def run_variant(params: dict, pairs, splits, direction: str, overrides: dict, seed: int, iterations: int,
-                threads: int, encoder, encoder_record) -> dict:
+                threads: int, encoder, encoder_record, root: Path = Path(".")) -> dict:
     settings = dict(model_settings(params), iterations=iterations)
     run = dict(params["translation"], seed=seed, threads=threads, checkpoint_every=10**9, resume=False)
     for key, value in overrides.items():
         (run if key in run else settings)[key] = value
     size = settings["size"]
-    train = load_pair_data(pairs, splits, direction, "all", size)
-    test = load_pair_data(pairs, splits, direction, "all", size, split="test")
+    train = load_pair_data(pairs, splits, direction, "all", size, root)
+    test = load_pair_data(pairs, splits, direction, "all", size, root, split="test")
     conditioning = build_conditioning(run["conditioning"], pairs, "all", train)
     started = time.perf_counter()
     result = train_translator(train, settings, run, direction, "all", progress=False, conditioning=conditioning)
@@ -71,7 +71,7 @@ def run_variant(params: dict, pairs, splits, direction: str, overrides: dict, se
     resized = generated if generated.shape[-1] == side else F.interpolate(
         generated.float(), size=(side, side), mode="area").round().clamp(0, 255).to(torch.uint8)
     index = {c: i for i, c in enumerate(encoder_record["classes"])}
-    predicted = predict(encoder, scale_images(resized)).numpy()
+    predicted = predict(encoder, resized).numpy()
     correct = predicted == np.array([index[c] for c in classes])
     per_class = {c: (float(ssim[classes == c].mean()), float(ssim_flat[classes == c].mean()),
                      float(correct[classes == c].mean())) for c in sorted(set(classes))}
@@ -101,7 +101,7 @@ def main() -> None:
         name, overrides = parse_variant(text)
         for seed in args.seeds:
             result = run_variant(params, pairs, splits, args.direction, overrides, seed, args.iterations,
-                                 args.threads, encoder, record)
+                                 args.threads, encoder, record, data.resolve().parent)
             rows.append((name, seed, result))
             print(f"# {name} seed {seed}: SSIM {result['ssim']:.3f} (flat {result['flat']:.3f}), GAN-test "
                   f"{result['gan_test']:.3f}, {result['seconds']:.0f} s", flush=True)

@@ -641,10 +641,33 @@ def models_table(runs: list[dict]) -> pd.DataFrame:
     """One row per model folder from its train.json (a direction without pairs: its status, no model)."""
     return pd.DataFrame([{
         "model": f"{r['direction']}/{r['scope']}", "status": r.get("status", "ok"), "preset": r.get("preset"),
+        "conditioning": r.get("conditioning", "none") if r.get("status", "ok") == "ok" else None,
+        "capacity": (r.get("capacity") or {}).get("mode"), "width (ngf)": (r.get("settings") or {}).get("ngf"),
         "size": (r.get("settings") or {}).get("size"), "iterations": r.get("steps"), "wall s": r.get("wall_seconds"),
         "s/iteration": r.get("seconds_per_iteration"), "final val L1": r.get("final_val_l1"),
-        "device": r.get("device"), "precision": r.get("precision"),
+        "device": r.get("device"), "precision": r.get("precision"), "precision chosen because": r.get("precision_reason"),
     } for r in runs])
+
+
+def capacity_table(runs: list[dict]) -> pd.DataFrame | None:
+    """Per model trained with capacity auto and per class: the width it needed, the step it settled at, and the
+    model's compute against the fixed large model (train.json ``capacity``); None when no model used auto."""
+    rows = []
+    for r in runs:
+        cap = r.get("capacity") or {}
+        if cap.get("mode") != "auto":
+            continue
+        compute = cap["compute"]
+        for name, choice in sorted(cap["per_class"].items()):
+            rows.append({"model": f"{r['direction']}/{r['scope']}", "class": name,
+                         "width needed": choice["width_needed"],
+                         "settled at step": choice["settled_at_step"] if choice["settled_at_step"] is not None
+                         else f"not settled by {cap['steps']}",
+                         "model width": cap["chosen_width"], "model steps": cap["steps"],
+                         "GFLOP (fixed large)": f"{compute['gflop']:.0f} ({compute['fixed_large_gflop']:.0f})",
+                         "compute saved": f"{100 * compute['saved_share']:.0f}%",
+                         "s (fixed large, estimated)": f"{compute['seconds']:.0f} ({compute['fixed_large_seconds_estimate']:.0f})"})
+    return pd.DataFrame(rows) if rows else None
 
 
 # ---------------------------------------------------------------- figures
@@ -838,6 +861,10 @@ def page_context(data: dict, figures: dict[str, bool], params: dict | None = Non
         "quarantine": table_view(quarantine.head(30), f"Quarantined inputs ({len(quarantine)}; first 30 shown)")
         if not quarantine.empty else None,
         "models": table_view(models_table(data["models"]), "Trained generators (train.json)"),
+        "capacity": (lambda t: table_view(t, "Capacity auto: per class, the smallest width within tolerance of the "
+                                             "largest at the width probe, and the step its validation Colour-SSIM "
+                                             "settled at; compute against the fixed large model")
+                     if t is not None else None)(capacity_table(data["models"])),
         "ms_ssim_note": None if ms_ssim == "computed" or not len(by_class) else f"MS-SSIM {ms_ssim}.",
         "ssim": [_direction_view(data, params, n, d) for n, d in (("I", "v2t"), ("II", "t2v"))
                  if d in set(by_class["direction"]) and d not in skipped],
