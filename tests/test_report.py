@@ -337,7 +337,7 @@ def _minimal_context(table: dict) -> dict:
                                                "classification": False},
             "verdicts": [{"status": "warning", "line": "WARNING: <v>"}], "not_scored": {}, "pair_kinds": {},
             "duplicates": {}, "modalities": [], "test_per_class": {},
-            "quarantine": None, "models": table, "ms_ssim_note": None, "ssim": [], "classify": [], "timings": None}
+            "quarantine": None, "models": table, "capacity": None, "ms_ssim_note": None, "ssim": [], "classify": [], "timings": None}
 
 
 # ---------------------------------------------------------------- the stage on fake inputs
