@@ -134,3 +134,23 @@ def test_training_records_the_precision_it_chose():
                               "all", progress=False)
     expected, _ = resolve_precision("auto", torch.device("cpu"))
     assert result.precision == expected and result.precision_reason.startswith("auto: ")
+
+
+def test_translate_files_needs_the_class_for_a_class_conditioned_model(tmp_path):
+    from PIL import Image
+
+    from vtgen.stages.generate import translate_files
+
+    conditioning = Conditioning("class", ("a", "b"))
+    generator = UNetGenerator(32, 4, 4, in_channels=3 + conditioning.extra_channels)
+    (tmp_path / "model").mkdir()
+    (tmp_path / "in").mkdir()
+    save_generator(tmp_path / "model" / "generator.pt", generator, dict(TINY_MODEL, ngf=4), "t2v", "all",
+                   conditioning=conditioning)
+    Image.fromarray(np.full((32, 32, 3), 90, dtype=np.uint8)).save(tmp_path / "in" / "x.png")
+    with pytest.raises(ValueError, match="--class"):
+        translate_files(tmp_path / "model", [tmp_path / "in"], tmp_path / "out", as_tiles=True)
+    with pytest.raises(ValueError, match="'c' unknown to this model"):
+        translate_files(tmp_path / "model", [tmp_path / "in"], tmp_path / "out", as_tiles=True, class_name="c")
+    written = translate_files(tmp_path / "model", [tmp_path / "in"], tmp_path / "out", as_tiles=True, class_name="b")
+    assert [p.name for p in written] == ["x.png"]
