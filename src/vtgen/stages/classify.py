@@ -435,11 +435,11 @@ def throughput(work: dict) -> dict:
     def rate(images, seconds):
         return round(images / seconds, 1) if seconds > 0 else None
 
-    return {"train_images": int(work["train"]), "train_seconds": round(work["train_seconds"], 2),
+    return {"train_images": int(work["train"]), "train_seconds": round(work["train_seconds"], 4),
             "train_images_per_second": rate(work["train"], work["train_seconds"]),
-            "eval_images": int(work["eval"]), "eval_seconds": round(work["eval_seconds"], 2),
+            "eval_images": int(work["eval"]), "eval_seconds": round(work["eval_seconds"], 4),
             "eval_images_per_second": rate(work["eval"], work["eval_seconds"]),
-            "norm_refresh_seconds": round(work["norm_seconds"], 2)}
+            "norm_refresh_seconds": round(work["norm_seconds"], 4)}
 
 
 def _print_result(summary: dict, modality: str, seeds: int, out_dir: Path) -> None:
