@@ -166,42 +166,6 @@ def apply_weights(model: AlexNet, state: Mapping, retrain_layers: int, source: s
     return {"reinitialised": reinitialised, "trainable": trainable}
 
 
-class Adam:
-    """Adam (betas 0.9 and 0.999, eps 1e-8, no weight decay) doing, op for op, what ``torch.optim.Adam``'s
-    default single-tensor step does on the CPU, so the two give the same weights bit for bit
-    (tests/test_classifier.py checks); it reuses one buffer per parameter instead of allocating two per
-    step, and does not load ``torch.optim``, whose first optimiser imports ``torch._dynamo`` (a few
-    seconds per stage process). A parameter without a gradient is skipped and its step count kept."""
-
-    def __init__(self, params, lr: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
-        self.params = list(params)
-        self.lr, (self.beta1, self.beta2), self.eps = lr, betas, eps
-        self.steps = [0] * len(self.params)
-        self.exp_avg = [torch.zeros_like(p, memory_format=torch.preserve_format) for p in self.params]
-        self.exp_avg_sq = [torch.zeros_like(p, memory_format=torch.preserve_format) for p in self.params]
-        self.denom = [torch.empty_like(p, memory_format=torch.preserve_format) for p in self.params]
-
-    def zero_grad(self, set_to_none: bool = True) -> None:
-        for param in self.params:
-            param.grad = None
-
-    @torch.no_grad()
-    def step(self) -> None:
-        beta1, beta2 = self.beta1, self.beta2
-        for i, (param, exp_avg, exp_avg_sq, denom) in enumerate(zip(self.params, self.exp_avg, self.exp_avg_sq,
-                                                                     self.denom)):
-            grad = param.grad
-            if grad is None:
-                continue
-            self.steps[i] += 1
-            step = float(self.steps[i])  # torch counts in a float32 tensor: the same value up to 2**24 steps
-            exp_avg.lerp_(grad, 1 - beta1)
-            exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
-            step_size = self.lr / (1 - beta1 ** step)
-            torch.sqrt(exp_avg_sq, out=denom).div_((1 - beta2 ** step) ** 0.5).add_(self.eps)
-            param.addcdiv_(exp_avg, denom, value=-step_size)
-
-
 class TrainingDiverged(RuntimeError):
     """The mean training loss of an epoch became non-finite (NaN or infinite); ``epoch``, ``seed``, ``loss`` say where."""
 
@@ -379,7 +343,7 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
     model = make_classifier(num_classes, settings, seed)
     loaded = apply_weights(model, weights, retrain_layers, weights_source) if weights is not None else None
     model.to(device)
-    optimiser = Adam([p for p in model.parameters() if p.requires_grad], lr=settings["lr"])
+    optimiser = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=settings["lr"])
     started = time.perf_counter()
     # Each set is scaled once here rather than per batch and epoch (when the scaled training images and
     # their mirror images fit PRESCALE_BYTES). Scaling and mirroring are exact, so a batch gathered from
