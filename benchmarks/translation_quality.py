@@ -55,7 +55,8 @@ def run_variant(params: dict, pairs, splits, direction: str, overrides: dict, se
     size = settings["size"]
     train = load_pair_data(pairs, splits, direction, "all", size, root)
     test = load_pair_data(pairs, splits, direction, "all", size, root, split="test")
-    conditioning = build_conditioning(run["conditioning"], pairs, "all", train)
+    kind = run["conditioning"][direction] if isinstance(run["conditioning"], dict) else run["conditioning"]
+    conditioning = build_conditioning(kind, pairs, "all", train)
     started = time.perf_counter()
     result = train_translator(train, settings, run, direction, "all", progress=False, conditioning=conditioning)
     seconds = time.perf_counter() - started

@@ -708,7 +708,7 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
     data = load_pair_data(pairs, splits, direction, scope, settings["size"])
     validation = (load_pair_data(pairs, splits, direction, scope, settings["size"], split="val")
                   if not pairs_in(pairs, "val", scope).empty else None)
-    conditioning = build_conditioning(run["conditioning"], pairs, scope, data)
+    conditioning = build_conditioning(run["conditioning"][direction], pairs, scope, data)
     print(f"train {direction}/{scope}: {len(data.targets)} training pairs ({int(data.aligned.sum())} aligned), "
           f"preset '{run['preset']}' at {settings['size']} px, {settings['iterations']} iterations of batch "
           f"{settings['batch_size']}, precision {run['precision']}, conditioning {conditioning.kind}")
