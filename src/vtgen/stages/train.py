@@ -623,6 +623,12 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
     folder = (lambda w: Path(checkpoint_dir) / f"width_{w}") if checkpoint_dir else (lambda w: None)
     probes, results = {}, {}
     for width in widths:
+        done = None if probe_steps >= settings["iterations"] else _finished_probe(
+            folder(width), dict(at[width], iterations=probe_steps), run, direction, scope, data, conditioning)
+        if done is not None:  # a rerun: this probe finished before (its run may have gone on since)
+            print(f"train {direction}/{scope}: width probe {width} taken from its checkpoint")
+            probes[width] = done
+            continue
         result = train_translator(data, dict(at[width], iterations=probe_steps), run, direction, scope, folder(width),
                                   progress=progress, validation=validation, conditioning=conditioning,
                                   eval_every=probe_steps, label=f"width probe {width}")
@@ -656,6 +662,27 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
                     "fixed_large": f"width {widths[-1]} for {settings['iterations']} iterations"},
     }
     return final, dict(at[chosen], iterations=final.steps), record
+
+
+def _finished_probe(folder: Path | None, settings: dict, run: dict, direction: str, scope: str, data: PairData,
+                    conditioning: Conditioning | None) -> dict | None:
+    """The width probe's record (``val_by_class`` at step ``settings['iterations']``, seconds) from a checkpoint
+    in ``folder`` that matches this run and has passed that step, or None (then the probe trains)."""
+    path = folder / CHECKPOINT_NAME if folder else None
+    if path is None or not run["resume"] or not path.is_file():
+        return None
+    try:
+        saved = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception:  # noqa: BLE001 - an unreadable checkpoint is dealt with by train_translator
+        return None
+    precision, _ = resolve_precision(run["precision"], resolve_device(run["device"]))
+    keys = checkpoint_keys(settings, dict(run, precision=precision), direction, scope, data, conditioning)
+    steps = settings["iterations"]
+    if not isinstance(saved, dict) or saved.get("fingerprint") != keys or saved.get("step", 0) < steps:
+        return None
+    row = next((r for r in saved["history"] if r["step"] == steps and "val_by_class" in r), None)
+    return None if row is None else {"val_by_class": row["val_by_class"],
+                                     "seconds": round(saved["seconds"] * steps / saved["step"], 2)}
 
 
 def build_conditioning(kind: str, pairs: pd.DataFrame, scope: str, data: PairData) -> Conditioning:
