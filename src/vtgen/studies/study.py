@@ -344,15 +344,18 @@ def run_round_trip(variant: dict, pairs_dir: Path, work: Path, progress: bool = 
     v2t_model, meta = load_translator(work / "v2t" / "models" / "v2t" / "all")
     test = splits[(splits["split"] == "test") & (splits["modality"] == "visual")].sort_values("path")
     originals = read_tiles(list(test["path"]), meta["size"])
-    tactile = translate(v2t_model, originals)
+    classes = list(test["class"])
+    tactile = translate(v2t_model, originals, conditioning=meta["conditioning"],
+                        labels=meta["conditioning"].labels(classes))
     rows, info = [], {"v2t": v2t_info, "mixed_training_pairs": {"real": len(keep), "generated": len(made)}}
     for label, source in (("real pairs only", pairs_dir), ("50/50 real and generated", mixed_dir)):
         from vtgen.stages.train import run_train
         out = work / label.replace(" ", "_").replace("/", "-") / "model"
         if not (out / "train.json").is_file():
             run_train(variant, "t2v", "all", source, out, checkpoint_root=out.parent / "checkpoints", progress=progress)
-        back_model, _ = load_translator(out)
-        back = translate(back_model, tactile)
+        back_model, back_meta = load_translator(out)
+        back = translate(back_model, tactile, conditioning=back_meta["conditioning"],
+                         labels=back_meta["conditioning"].labels(classes))
         ssim = colour_ssim(back.permute(0, 2, 3, 1).numpy(), originals.permute(0, 2, 3, 1).numpy(), 255.0)
         info[label] = {"train_seconds": json.loads((out / "train.json").read_text())["wall_seconds"]}
         for cls in sorted(test["class"].unique()):
