@@ -643,6 +643,8 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
                              on_log=on_log, progress=progress, validation=validation, conditioning=conditioning,
                              eval_every=cap["eval_every"], stop=lambda history: all_settled(history, tolerance, patience),
                              label=f"width {chosen}, early stopping")
+    if chosen in results and final is not results[chosen] and final.resumed_from == probe_steps:
+        final.resumed_from = results[chosen].resumed_from  # continuing this call's own probe is not a resume
     settled = settled_classes(final.history, tolerance, patience)
     flops = {w: training_step_flops(at[w], 3 + extra) for w in widths}
     actual = sum(probe_steps * flops[w] for w in widths if w != chosen) + final.steps * flops[chosen]
