@@ -57,7 +57,7 @@ from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
 from vtgen.core.gan import adversarial_loss, make_optimizer, random_positioning
-from vtgen.core.models import build_discriminator, conditional_pair, count_parameters, UNetGenerator
+from vtgen.core.models import build_discriminator, conditional_pair, count_parameters, init_weights, UNetGenerator  # pix2pix uses the same init
 from vtgen.core.translator import TranslatorTraining
 from vtgen.io.params import load_params
 
@@ -69,17 +69,6 @@ Step = Callable[[], None]
 # --------------------------------------------------------------------------------------------------
 # pix2pix, re-typed: networks, loss and optimize_parameters
 # --------------------------------------------------------------------------------------------------
-
-def pix2pix_init(module: nn.Module) -> None:
-    """pix2pix's 'normal' init (gain 0.02): conv weights N(0, 0.02), BatchNorm weights N(1, 0.02), biases 0."""
-    if isinstance(module, (nn.Conv2d, nn.ConvTranspose2d)):
-        nn.init.normal_(module.weight, 0.0, 0.02)
-        if module.bias is not None:
-            nn.init.zeros_(module.bias)
-    elif isinstance(module, nn.BatchNorm2d):
-        nn.init.normal_(module.weight, 1.0, 0.02)
-        nn.init.zeros_(module.bias)
-
 
 class SkipBlock(nn.Module):
     """One U-Net level: ``outer`` channels in, a stride-2 down conv to ``inner``, the ``child`` block, a
@@ -122,7 +111,7 @@ class Pix2PixUNet(nn.Module):
         for width in (4 * ngf, 2 * ngf, ngf):
             block = SkipBlock(width, 2 * width, block)
         self.net = SkipBlock(out_channels, ngf, block, source=in_channels, outermost=True)
-        self.apply(pix2pix_init)
+        self.apply(init_weights)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(x)
@@ -143,7 +132,7 @@ class Pix2PixPatchGAN(nn.Module):
             width = target
         parts.append(nn.Conv2d(width, 1, 4, 1, 1))
         self.net = nn.Sequential(*parts)
-        self.apply(pix2pix_init)
+        self.apply(init_weights)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(x)

@@ -670,6 +670,14 @@ def capacity_table(runs: list[dict]) -> pd.DataFrame | None:
     return pd.DataFrame(rows) if rows else None
 
 
+def capacity_view(runs: list[dict]) -> dict | None:
+    """:func:`capacity_table` as template data, or None when no model used capacity auto."""
+    table = capacity_table(runs)
+    return None if table is None else table_view(
+        table, "Capacity auto: per class, the smallest width within tolerance of the largest at the width probe, "
+               "and the step its validation Colour-SSIM settled at; compute against the fixed large model")
+
+
 # ---------------------------------------------------------------- figures
 
 
@@ -861,10 +869,7 @@ def page_context(data: dict, figures: dict[str, bool], params: dict | None = Non
         "quarantine": table_view(quarantine.head(30), f"Quarantined inputs ({len(quarantine)}; first 30 shown)")
         if not quarantine.empty else None,
         "models": table_view(models_table(data["models"]), "Trained generators (train.json)"),
-        "capacity": (lambda t: table_view(t, "Capacity auto: per class, the smallest width within tolerance of the "
-                                             "largest at the width probe, and the step its validation Colour-SSIM "
-                                             "settled at; compute against the fixed large model")
-                     if t is not None else None)(capacity_table(data["models"])),
+        "capacity": capacity_view(data["models"]),
         "ms_ssim_note": None if ms_ssim == "computed" or not len(by_class) else f"MS-SSIM {ms_ssim}.",
         "ssim": [_direction_view(data, params, n, d) for n, d in (("I", "v2t"), ("II", "t2v"))
                  if d in set(by_class["direction"]) and d not in skipped],
