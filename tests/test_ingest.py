@@ -163,6 +163,37 @@ def test_stream_map_raises_the_first_error_and_cancels_the_rest():
     assert len(started) < 20  # the other 980-odd items were never started
 
 
+def _square_in_a_process(i):
+    import os
+
+    if i == 37:
+        raise ValueError(f"bad item 37 (in process {os.getpid()})")
+    return i * i, os.getpid()
+
+
+def test_stream_map_in_processes_keeps_order_across_batches_and_raises_the_item_error():
+    import os
+
+    from vtgen.io.images import stream_map
+
+    pulled = []
+
+    def items(n):
+        for i in range(n):
+            pulled.append(i)
+            yield i
+
+    results = list(stream_map(_square_in_a_process, items(30), workers=2, processes=True, batch=4, window=2))
+    assert [square for square, _ in results] == [i * i for i in range(30)]  # 30 = 7 full batches and one of 2
+    assert os.getpid() not in {pid for _, pid in results}  # the work ran in the pool's processes
+    pulled.clear()
+    with pytest.raises(ValueError, match="bad item 37"):
+        for _ in stream_map(_square_in_a_process, items(10_000), workers=2, processes=True, batch=4, window=2):
+            # at most `window` batches taken from the input and not yet handed back, plus the batch being filled
+            pass
+    assert len(pulled) < 37 + 3 * 4
+
+
 def traced_peak(func) -> int:
     """Peak of the memory Python (and numpy) allocated while ``func`` ran, in bytes."""
     import gc

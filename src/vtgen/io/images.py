@@ -14,7 +14,8 @@ import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from concurrent.futures import ThreadPoolExecutor
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from typing import Callable, Iterable, Iterator, TypeVar
 
 import cv2
@@ -191,16 +192,43 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 
-def stream_map(func: Callable[[T], R], items: Iterable[T], workers: int, total: int | None = None, desc: str = "",
-               progress: bool = False, window: int | None = None) -> Iterator[R]:
-    """``func`` over ``items`` on ``workers`` threads, results in input order, streamed.
+def _single_threaded_worker() -> None:
+    """Process-pool initializer: the pool's processes are the parallelism, so OpenCV and torch
+    run one thread each inside them."""
+    cv2.setNumThreads(1)
+    torch.set_num_threads(1)
 
-    At most ``window`` items (default 4 per worker) are taken from ``items`` and not yet handed
+
+def _map_batch(func: Callable[[T], R], batch: list[T]) -> list[R]:
+    return [func(item) for item in batch]
+
+
+def _batches(items: Iterable[T], size: int) -> Iterator[list[T]]:
+    batch: list[T] = []
+    for item in items:
+        batch.append(item)
+        if len(batch) == size:
+            yield batch
+            batch = []
+    if batch:
+        yield batch
+
+
+def stream_map(func: Callable[[T], R], items: Iterable[T], workers: int, total: int | None = None, desc: str = "",
+               progress: bool = False, window: int | None = None, processes: bool = False,
+               batch: int = 8) -> Iterator[R]:
+    """``func`` over ``items`` on ``workers`` threads (or processes), results in input order, streamed.
+
+    At most ``window`` tasks (default 4 per worker) are taken from ``items`` and not yet handed
     back, so memory is bounded by the window, not by the number of items: ``items`` may be a lazy
     iterator and is read only as results are consumed (``Executor.map`` would submit every item at
     once and keep a future per item).
-    If ``func`` raises, the exception is raised here and the items not started are cancelled.
-    Threads suffice: image decoding, resizing and encoding release the GIL.
+    If ``func`` raises, the exception is raised here and the tasks not started are cancelled.
+    Threads suffice where the work is mostly decoding, resizing and encoding, which release the
+    GIL. ``processes=True`` is for work with many small numpy steps, which hold it: ``func`` (a
+    module-level function), its items and results must then pickle; the processes are forked where
+    the platform allows, and each task is a ``batch`` of items, so the cost of handing a task to
+    another process (a fraction of a millisecond) is paid once per batch.
     """
     workers = max(1, int(workers))
     window = max(workers, window or 4 * workers)
@@ -210,18 +238,28 @@ def stream_map(func: Callable[[T], R], items: Iterable[T], workers: int, total: 
 
         bar = tqdm(total=total, desc=desc, unit="img")
     pending: deque = deque()
-    with ThreadPoolExecutor(max_workers=workers) as pool:
+    if processes and workers > 1:
+        method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
+        executor = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(method),
+                                       initializer=_single_threaded_worker)
+        tasks = ((_map_batch, func, chunk) for chunk in _batches(items, max(1, int(batch))))
+    else:
+        executor = ThreadPoolExecutor(max_workers=workers)
+        tasks = ((_map_batch, func, [item]) for item in items)
+    with executor as pool:
         try:
-            for item in items:
-                pending.append(pool.submit(func, item))
+            for task in tasks:
+                pending.append(pool.submit(*task))
                 if len(pending) >= window:
-                    yield pending.popleft().result()
+                    for result in pending.popleft().result():
+                        yield result
+                        if bar is not None:
+                            bar.update()
+            while pending:
+                for result in pending.popleft().result():
+                    yield result
                     if bar is not None:
                         bar.update()
-            while pending:
-                yield pending.popleft().result()
-                if bar is not None:
-                    bar.update()
         finally:
             for future in pending:
                 future.cancel()

@@ -21,7 +21,7 @@ the fallback used (``note``) and ``channels`` (1 when the image is greyscale in 
 
 An image too small for the centre crop (``crop_fraction`` of its shorter side is under one
 pixel) gives no tile; it is listed with the reason under ``skipped`` in ``summary.json``.
-Images are read, cut and written one per worker thread at a time, with at most a few images per
+Images are read, cut and written one per worker process at a time, with at most a few images per
 worker in flight (:func:`vtgen.io.images.stream_map`); the manifest is read row by row and each
 image's tiles are written before the next image is read. Only the tile and region tables are kept
 in memory, built column by column. JPEG files are decoded with OpenCV (the same pixels as
@@ -31,6 +31,7 @@ its tiles are cut), anything else with ``read_rgb8``; tiles are written as RGB P
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from array import array
@@ -95,9 +96,10 @@ def _is_grey(image: np.ndarray, tiles: list[np.ndarray]) -> bool:
 
 
 def _tile_one(args) -> tuple[ImageROI, int, list[str]]:
-    """The ROI of one manifest image, its channels (1: greyscale content) and the tile file names
-    (relative to ``tiles_dir``) written to ``tiles_dir/<modality>/<class>/``."""
-    index, path, modality, cls, roi, tiles_dir, made = args
+    """The ROI of one manifest image (without its tile pixels, which are written here), its channels
+    (1: greyscale content) and the tile file names (relative to ``tiles_dir``) written to
+    ``tiles_dir/<modality>/<class>/``."""
+    index, path, modality, cls, roi, tiles_dir = args
     try:
         image = read_for_roi(path)
     except ImageError as exc:
@@ -110,16 +112,14 @@ def _tile_one(args) -> tuple[ImageROI, int, list[str]]:
     if result.reason:
         return result, channels, []
     folder = tiles_dir / modality / cls
-    if folder not in made:  # one mkdir per folder, not per image (a race only repeats a harmless mkdir)
-        folder.mkdir(parents=True, exist_ok=True)
-        made.add(folder)
+    folder.mkdir(parents=True, exist_ok=True)  # a few microseconds; workers may race on it harmlessly
     names = []
     stem = Path(path).stem
     for k, tile in enumerate(result.tiles):
         name = f"{index:06d}_{stem}_{k}.png"
         write_tile_png(folder / name, tile)
         names.append(f"{modality}/{cls}/{name}")
-    return result, channels, names
+    return dataclasses.replace(result, tiles=[]), channels, names
 
 
 class _RegionRecorder:
@@ -166,18 +166,20 @@ def cut_dataset_tiles(manifest: pd.DataFrame, roi: dict, tiles_dir: Path, worker
     The manifest is read lazily and at most a few images per worker are in flight, so memory holds
     the tables (metadata) only, not the pixels of more than a handful of images.
     """
-    tiles_dir, made = Path(tiles_dir), set()
-    jobs = ((i, path, modality, cls, roi, tiles_dir, made) for i, (path, modality, cls) in
+    tiles_dir = Path(tiles_dir)
+    jobs = ((i, path, modality, cls, roi, tiles_dir) for i, (path, modality, cls) in
             enumerate(zip(manifest["path"], manifest["modality"], manifest["class"])))
     tile_paths: list[str] = []
     positions = array("i")  # the manifest row (by position) of each tile
     boxes = {name: array("i") for name in _BOX_COLUMNS}
     recorder = _RegionRecorder()
-    # our workers are the parallelism: OpenCV's own thread pool on top of them only adds contention
+    # our workers are the parallelism: OpenCV's own thread pool on top of them only adds contention.
+    # Worker processes, not threads: the disc search's many small numpy steps hold the GIL (on 480
+    # vt60 frames 2 threads gave 1.3x one thread, 2 processes 1.9x: benchmarks/README.md).
     opencv_threads = cv2.getNumThreads()
     cv2.setNumThreads(1 if workers > 1 else opencv_threads)
     try:
-        results = stream_map(_tile_one, jobs, workers, len(manifest), "roi", progress)
+        results = stream_map(_tile_one, jobs, workers, len(manifest), "roi", progress, processes=True)
         for position, (result, channels, names) in enumerate(results):  # results come in manifest order
             recorder.add(result, channels)
             if result.reason:
