@@ -11,6 +11,7 @@ import copy
 
 import torch
 import torch.nn.functional as F
+from torch import nn
 
 from vtgen.core.gan import adversarial_loss, make_optimizer
 from vtgen.core.models import build_discriminator, conditional_pair, UNetGenerator
@@ -20,9 +21,24 @@ STATE_KEYS = ("generator", "discriminator", "opt_g", "opt_d")
 PRECISIONS = ("fp32", "bf16")
 
 
+def discriminator_features(discriminator: nn.Module, pair: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """``discriminator(pair)`` and the output of each of its LeakyReLU layers, in order: the
+    intermediate features that feature matching compares (pix2pixHD, Wang et al. 2018)."""
+    features: list[torch.Tensor] = []
+    hooks = [module.register_forward_hook(lambda _module, _inputs, output: features.append(output))
+             for module in discriminator.modules() if isinstance(module, nn.LeakyReLU)]
+    try:
+        logits = discriminator(pair)
+    finally:
+        for hook in hooks:
+            hook.remove()
+    return logits, features
+
+
 class TranslatorTraining:
     """G, D and their optimisers, built from a presets block (size, ngf, ndf, kernel, discriminator,
-    patch_layers, gan_loss, l1_weight, optimizer, lr, betas; other keys are ignored).
+    patch_layers, gan_loss, l1_weight, optimizer, lr, betas, and the optional feature_matching
+    weight, 0 when absent; other keys are ignored).
 
     Weights are drawn from torch's global generator: seed it first for a reproducible start.
     Optimisers take their multi-tensor step (fused Adam, foreach RMSprop); ``precision`` 'bf16'
@@ -57,31 +73,44 @@ class TranslatorTraining:
         N x 3 x S x S, in [-1, 1] on the device).
 
         D minimises ½[L(D(x, y), real) + L(D(x, G(x)), fake)]; then, with D's weights frozen,
-        G minimises L(D(x, G(x)), real) + l1_weight·|G(x) − y|₁ (pix2pix eq. 4).
+        G minimises L(D(x, G(x)), real) + l1_weight·|G(x) − y|₁ (pix2pix eq. 4)
+        + feature_matching·(1/K)Σₖ |Dₖ(x, G(x)) − Dₖ(x, y)|₁ over D's K LeakyReLU outputs, the real
+        ones taken from D's own step (pix2pixHD eq. 4, Wang et al. 2018; off when the weight is 0).
         Returns the detached 0-d losses named by :data:`LOSS_NAMES` (no host sync).
         """
+        matching = self.settings.get("feature_matching", 0.0)
         with self._autocast():
             fake = self.generator(x)
-            d_real = self.discriminator(conditional_pair(x, y))
+            if matching:
+                d_real, real_features = discriminator_features(self.discriminator, conditional_pair(x, y))
+                real_features = [f.detach() for f in real_features]
+            else:
+                d_real, real_features = self.discriminator(conditional_pair(x, y)), []
             d_fake = self.discriminator(conditional_pair(x, fake.detach()))
         loss_d = 0.5 * (self._loss(d_real, True) + self._loss(d_fake, False))
         self.opt_d.zero_grad(set_to_none=True)
         loss_d.backward()
         self.opt_d.step()
-        loss_g_gan, loss_g_l1 = self._generator_step(x, y, fake)
+        loss_g_gan, loss_g_l1 = self._generator_step(x, y, fake, real_features)
         return dict(zip(LOSS_NAMES, (loss_d.detach(), loss_g_gan.detach(), loss_g_l1.detach())))
 
-    def _generator_step(self, x: torch.Tensor, y: torch.Tensor,
-                        fake: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _generator_step(self, x: torch.Tensor, y: torch.Tensor, fake: torch.Tensor,
+                        real_features: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         """G's update; D is frozen meanwhile (gradients flow through it, none are computed for its weights)."""
         self.discriminator.requires_grad_(False)
         try:
             with self._autocast():
-                d_fake = self.discriminator(conditional_pair(x, fake))
+                if real_features:
+                    d_fake, fake_features = discriminator_features(self.discriminator, conditional_pair(x, fake))
+                else:
+                    d_fake = self.discriminator(conditional_pair(x, fake))
             loss_g_gan = self._loss(d_fake, True)
             loss_g_l1 = F.l1_loss(fake.float(), y)
             weight = self.settings["l1_weight"]
             loss_g = loss_g_gan + weight * loss_g_l1 if weight else loss_g_gan
+            if real_features:
+                matched = sum(F.l1_loss(f.float(), r.float()) for f, r in zip(fake_features, real_features))
+                loss_g = loss_g + self.settings["feature_matching"] * matched / len(real_features)
             self.opt_g.zero_grad(set_to_none=True)
             loss_g.backward()
             self.opt_g.step()
