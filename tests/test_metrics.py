@@ -509,3 +509,21 @@ def test_bootstrap_interval_matches_the_normal_approximation_and_resamples_whole
     assert bootstrap_interval(np.array([0.2, 0.4]), np.array(["a", "a"])) == (pytest.approx(0.3), pytest.approx(0.3))
     assert bootstrap_interval(np.array([0.2, np.nan, 0.4]))[0] >= 0.2
     assert all(np.isnan(bootstrap_interval(np.array([np.nan]))))
+
+
+def test_colour_ssim_leaves_torchs_thread_count_as_it_was():
+    # numba's OpenMP layer sets the process's OpenMP thread count; a training job at 1 thread went on at 2
+    # after its first validation SSIM, which changed its rounding (a resumed run then differed in the last bits)
+    import torch
+
+    from vtgen.core.metrics import colour_ssim
+
+    before = torch.get_num_threads()
+    images = np.random.default_rng(0).integers(0, 256, (4, 32, 32, 3), dtype=np.uint8)
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            colour_ssim(images, images[::-1].copy(), 255.0)
+            assert torch.get_num_threads() == threads
+    finally:
+        torch.set_num_threads(before)

@@ -170,10 +170,7 @@ def test_training_killed_mid_run_resumes_under_snakemake_to_the_same_weights(tmp
     params = tiny_params()
     params["presets"]["fast"]["iterations"] = 60
     params["translation"]["checkpoint_every"] = 10
-    params["translation"]["capacity"].update(eval_every=10, patience=3)
-    # capacity auto resumes, but not yet to the uninterrupted run's weights (open defect, see the issue
-    # note); the fixed preset's resume is exact and is what this test holds
-    params["translation"]["capacity"]["mode"] = "fixed"
+    params["translation"]["capacity"].update(mode="auto", eval_every=10, patience=3)  # the default mode
     project = make_project(tmp_path / "project", params)
     run(["snakemake", "--cores", "2", "data/pairs"], project)
     # the reference: the same training, uninterrupted, with its own checkpoint folder

@@ -20,8 +20,9 @@ Images smaller than the window (11 px) are refused.
 There is one SSIM implementation: a fused float64 numba kernel (``_ssim_band_sums``) on the
 CPU, compiled on first use and cached on disk where a cache directory is writable; Colour-SSIM,
 grey SSIM (the SSIM of the luma image) and set-to-set SSIM all run in it. numba's thread
-setting is left alone. There is no multi-scale SSIM (MS-SSIM): it needs images of at least
-161 px (the window at the fifth scale), larger than the pipeline's tiles.
+setting is left alone, and torch's thread count is restored after each call (numba's OpenMP
+layer changes it). There is no multi-scale SSIM (MS-SSIM): it needs images of at least 161 px
+(the window at the fifth scale), larger than the pipeline's tiles.
 
 References: Z. Wang, A. C. Bovik, H. R. Sheikh, E. P. Simoncelli, "Image quality assessment:
 from error visibility to structural similarity", IEEE TIP 13 (2004). J.-T. Lee, D. Bollegala,
@@ -31,6 +32,7 @@ S. Luo, "'Touching to see' and 'seeing to feel'", ICRA 2019 (Colour-SSIM).
 from __future__ import annotations
 
 import math
+import sys
 
 import numba
 import numpy as np
@@ -270,8 +272,14 @@ def _kernel_ssim(x: np.ndarray, y: np.ndarray, first: np.ndarray, second: np.nda
         return np.empty(0)
     x_means = _channel_means(x) if x_means is None else x_means
     y_means = _channel_means(y) if y_means is None else y_means
+    # numba's OpenMP threading layer sets the process-wide OpenMP thread count, which torch's CPU kernels
+    # share: a training job set to 1 thread ran on 2 after its first validation SSIM, with other rounding
+    torch = sys.modules.get("torch")
+    threads = torch.get_num_threads() if torch is not None else None
     sums = _ssim_band_sums(x, y, first.astype(np.int64), second.astype(np.int64), x_means, y_means,
                            (K1 * data_range) ** 2, (K2 * data_range) ** 2)
+    if threads is not None and torch.get_num_threads() != threads:
+        torch.set_num_threads(threads)
     positions = (x.shape[1] - 2 * RADIUS) * (x.shape[2] - 2 * RADIUS)
     return (sums.sum(axis=2) / positions).mean(axis=1)
 
