@@ -21,9 +21,9 @@ the fallback used (``note``) and ``channels`` (1 when the image is greyscale in 
 
 An image too small for the centre crop (``crop_fraction`` of its shorter side is under one
 pixel) gives no tile; it is listed with the reason under ``skipped`` in ``summary.json``.
-Images are read, cut and written one per worker process at a time, with at most a few images per
-worker in flight (:func:`vtgen.io.images.stream_map`); the manifest is read row by row and each
-image's tiles are written before the next image is read. Only the tile and region tables are kept
+Images are read, cut and written one per worker process at a time, in batches of 8, with at most
+4 batches per worker in flight (:func:`vtgen.io.images.stream_map`); the manifest is read row by row
+and each image's tiles are written before the worker reads its next image. Only the tile and region tables are kept
 in memory, built column by column. JPEG files are decoded with OpenCV (the same pixels as
 :func:`vtgen.io.images.read_rgb8`, checked in the tests; a greyscale JPEG stays one channel until
 its tiles are cut), anything else with ``read_rgb8``; tiles are written as RGB PNG (zlib level 1).
