@@ -194,6 +194,44 @@ def test_stream_map_in_processes_keeps_order_across_batches_and_raises_the_item_
     assert len(pulled) < 37 + 3 * 4
 
 
+WORKER_POOL_SCRIPT = """
+import os, sys, time
+from vtgen.io.images import stream_map
+
+def slow(i):
+    time.sleep(0.05)
+    return i
+
+print(os.getpid(), flush=True)
+for _ in stream_map(slow, range(10_000), 2, processes=True):
+    pass
+"""
+
+
+def test_stream_map_worker_processes_end_when_their_parent_is_killed():
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import psutil
+
+    from conftest import ENV
+
+    parent = subprocess.Popen([sys.executable, "-c", WORKER_POOL_SCRIPT], stdout=subprocess.PIPE, text=True, env=ENV)
+    try:
+        int(parent.stdout.readline())
+        deadline = time.monotonic() + 60
+        while len(workers := psutil.Process(parent.pid).children()) < 2:
+            assert time.monotonic() < deadline, "the pool's workers never started"
+            time.sleep(0.05)
+    finally:
+        parent.send_signal(signal.SIGKILL)  # as Snakemake or a user would: no chance to shut the pool down
+        parent.wait()
+    gone, alive = psutil.wait_procs(workers, timeout=10)
+    assert not alive, f"orphaned workers still running: {[p.pid for p in alive]}"
+
+
 def traced_peak(func) -> int:
     """Peak of the memory Python (and numpy) allocated while ``func`` ran, in bytes."""
     import gc

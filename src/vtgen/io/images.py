@@ -12,6 +12,8 @@ import errno
 import hashlib
 import os
 import shutil
+import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 import multiprocessing
@@ -192,11 +194,19 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 
-def _single_threaded_worker() -> None:
+def _pool_worker(parent: int) -> None:
     """Process-pool initializer: the pool's processes are the parallelism, so OpenCV and torch
-    run one thread each inside them."""
+    run one thread each inside them; and a worker ends when its parent is gone (a stage killed by
+    SIGKILL cannot stop its pool, whose workers would otherwise wait for tasks for ever)."""
     cv2.setNumThreads(1)
     torch.set_num_threads(1)
+    threading.Thread(target=_exit_with, args=(parent,), daemon=True).start()
+
+
+def _exit_with(parent: int) -> None:
+    while os.getppid() == parent:
+        time.sleep(0.5)
+    os._exit(1)
 
 
 def _map_batch(func: Callable[[T], R], batch: list[T]) -> list[R]:
@@ -241,7 +251,7 @@ def stream_map(func: Callable[[T], R], items: Iterable[T], workers: int, total: 
     if processes and workers > 1:
         method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
         executor = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(method),
-                                       initializer=_single_threaded_worker)
+                                       initializer=_pool_worker, initargs=(os.getpid(),))
         tasks = ((_map_batch, func, chunk) for chunk in _batches(items, max(1, int(batch))))
     else:
         executor = ThreadPoolExecutor(max_workers=workers)
