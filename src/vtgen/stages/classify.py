@@ -45,7 +45,7 @@ from vtgen.io.classifiers import save_classifier
 from vtgen.io.tables import GENERATED_COLUMNS
 from vtgen.io.images import atomic_output_dir
 from vtgen.io.tables import read_table
-from vtgen.core.domain import DIRECTIONS
+from vtgen.core.domain import direction_producing, DIRECTIONS
 from vtgen.io.tables import SPLIT_COLUMNS
 from vtgen.io.images import read_tiles
 from vtgen.core.device import resolve_device
@@ -60,14 +60,6 @@ BY_CLASS_COLUMNS = ["modality", "setting", "class", "images", "accuracy", "low",
 # (with generated images, without): the paper's question, asked at full and at low data
 COMPARISONS = (("real+generated", "real"), ("low-data real+generated", "low-data real"))
 GAN_TEST = "GAN-test"
-
-
-def direction_producing(modality: str) -> str:
-    """The translation direction whose output is ``modality`` (tactile <- v2t, visual <- t2v)."""
-    for direction, (_, target) in DIRECTIONS.items():
-        if target == modality:
-            return direction
-    raise ValueError(f"unknown modality '{modality}' (allowed: {', '.join(t for _, t in DIRECTIONS.values())})")
 
 
 def check_generated_splits(generated: pd.DataFrame, splits: pd.DataFrame, direction: str) -> None:
