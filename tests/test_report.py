@@ -491,6 +491,17 @@ def test_html_escapes_a_class_name_and_shows_every_section(tmp_path):
     assert page.count("<img ") == 6 and not list(out.glob(".*tmp*"))
 
 
+def test_only_a_final_epoch_at_chance_counts_as_ending_at_chance():
+    from vtgen.stages.report import at_chance
+
+    rows = [("real", 0, 1, True), ("real", 0, 2, False), ("real", 1, 1, False), ("real", 1, 2, False),
+            ("low-data real", 0, 1, False), ("low-data real", 0, 2, True)]
+    accuracy = pd.DataFrame(rows, columns=["setting", "seed", "epoch", "at_chance"])
+    # 'real' was at chance after its first epoch only (the vt60 tactile case): no warning; 'low-data real' ends there
+    assert at_chance({}, accuracy) == ["low-data real"]
+    assert at_chance({"settings": {"real": {"at_chance": True}}}, accuracy) == ["real", "low-data real"]
+
+
 @pytest.mark.parametrize("flag", [True, False])
 @pytest.mark.slow
 def test_a_classifier_at_chance_level_is_warned_about_only_when_marked(tmp_path, flag):

@@ -161,11 +161,14 @@ def pair_kinds(pairs_dir: Path) -> dict:
 
 
 def at_chance(summary: dict, accuracy: pd.DataFrame) -> list[str]:
-    """Settings the classify stage marked as ending at chance level (summary or table); none when unmarked."""
+    """Settings the classify stage marked as ending at chance level: in summary.json (the mean over seeds), or
+    in the accuracy table at a seed's final epoch (an earlier epoch at chance is how training starts, not
+    how it ends); none when unmarked."""
     flagged = {name for name, entry in (summary.get("settings") or {}).items()
                if isinstance(entry, dict) and entry.get("at_chance") is True}
-    if "at_chance" in accuracy.columns:
-        flagged |= set(accuracy.loc[accuracy["at_chance"].fillna(False).astype(bool), "setting"])
+    if "at_chance" in accuracy.columns and not accuracy.empty:
+        final = accuracy[accuracy["epoch"] == accuracy.groupby(["setting", "seed"])["epoch"].transform("max")]
+        flagged |= set(final.loc[final["at_chance"].fillna(False).astype(bool), "setting"])
     return sorted(flagged, key=lambda s: (SETTING_ORDER.index(s) if s in SETTING_ORDER else 9, s))
 
 
