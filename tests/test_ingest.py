@@ -194,6 +194,21 @@ def test_stream_map_in_processes_keeps_order_across_batches_and_raises_the_item_
     assert len(pulled) < 37 + 3 * 4
 
 
+def _dies_at_item_5(i):
+    import os
+
+    if i == 5:
+        os._exit(1)  # as the kernel's OOM killer would end it: no exception, no cleanup
+    return i
+
+
+def test_a_worker_process_that_dies_is_an_error_that_says_so():
+    from vtgen.io.images import stream_map
+
+    with pytest.raises(RuntimeError, match="roi: a worker process ended abruptly"):
+        list(stream_map(_dies_at_item_5, range(40), workers=2, desc="roi", processes=True, batch=2))
+
+
 WORKER_POOL_SCRIPT = """
 import os, sys, time
 from vtgen.io.images import stream_map

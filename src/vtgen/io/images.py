@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from typing import Callable, Iterable, Iterator, TypeVar
 
 import cv2
@@ -224,6 +225,14 @@ def _batches(items: Iterable[T], size: int) -> Iterator[list[T]]:
         yield batch
 
 
+def _results(future, desc: str) -> list:
+    try:
+        return future.result()
+    except BrokenProcessPool as exc:
+        raise RuntimeError(f"{desc or 'stream_map'}: a worker process ended abruptly (killed by a signal, or out of "
+                           f"memory); the stage's output was not replaced") from exc
+
+
 def stream_map(func: Callable[[T], R], items: Iterable[T], workers: int, total: int | None = None, desc: str = "",
                progress: bool = False, window: int | None = None, processes: bool = False,
                batch: int = 8) -> Iterator[R]:
@@ -261,12 +270,12 @@ def stream_map(func: Callable[[T], R], items: Iterable[T], workers: int, total: 
             for task in tasks:
                 pending.append(pool.submit(*task))
                 if len(pending) >= window:
-                    for result in pending.popleft().result():
+                    for result in _results(pending.popleft(), desc):
                         yield result
                         if bar is not None:
                             bar.update()
             while pending:
-                for result in pending.popleft().result():
+                for result in _results(pending.popleft(), desc):
                     yield result
                     if bar is not None:
                         bar.update()
