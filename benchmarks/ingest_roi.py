@@ -11,7 +11,7 @@ Two data sets, each timed in a fresh Python process (``--repeats`` runs, median)
 
 ROI, of all images and of the tactile ones alone; settings: ``size 64``, ``tactile_box`` from ``--tactile-box`` (default ``auto``),
 ``remove_markers: true``, centre crop 0.5. Printed per data set: images/s of ingest, of ROI and of
-both (N / median wall seconds), with ``--workers`` threads (default 2), and the CPU time per image
+both (N / median wall seconds), with ``--workers`` workers (default 2: ingest threads, ROI processes), and the CPU time per image
 (process time, all threads and worker processes: the work done, which other jobs on a shared machine barely change) with
 the rate it would give if the work had the cores to itself (an upper bound: it assumes the worker
 threads never wait for each other).

@@ -11,12 +11,12 @@ from collections import deque
 import errno
 import hashlib
 import os
+import multiprocessing
 import shutil
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-import multiprocessing
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Callable, Iterable, Iterator, TypeVar
@@ -230,7 +230,7 @@ def _results(future, desc: str) -> list:
         return future.result()
     except BrokenProcessPool as exc:
         raise RuntimeError(f"{desc or 'stream_map'}: a worker process ended abruptly (killed by a signal, or out of "
-                           f"memory); the stage's output was not replaced") from exc
+                           f"memory)") from exc
 
 
 def stream_map(func: Callable[[T], R], items: Iterable[T], workers: int, total: int | None = None, desc: str = "",

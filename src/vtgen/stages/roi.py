@@ -22,9 +22,9 @@ the fallback used (``note``) and ``channels`` (1 when the image is greyscale in 
 An image too small for the centre crop (``crop_fraction`` of its shorter side is under one
 pixel) gives no tile; it is listed with the reason under ``skipped`` in ``summary.json``.
 Images are read, cut and written one per worker process at a time, in batches of 8, with at most
-4 batches per worker in flight (:func:`vtgen.io.images.stream_map`); the manifest is read row by row
-and each image's tiles are written before the worker reads its next image. Only the tile and region tables are kept
-in memory, built column by column. JPEG files are decoded with OpenCV (the same pixels as
+4 batches per worker in flight (:func:`vtgen.io.images.stream_map`); the manifest is read row by
+row and each image's tiles are written before the worker reads its next image. Only the tile and
+region tables are kept in memory, built column by column. JPEG files are decoded with OpenCV (the same pixels as
 :func:`vtgen.io.images.read_rgb8`, checked in the tests; a greyscale JPEG stays one channel until
 its tiles are cut), anything else with ``read_rgb8``; tiles are written as RGB PNG (zlib level 1).
 """
@@ -163,8 +163,8 @@ def cut_dataset_tiles(manifest: pd.DataFrame, roi: dict, tiles_dir: Path, worker
 
     Images that give no tile are appended to ``skipped`` as ``{"path", "reason"}``; the region
     table (:data:`REGION_COLUMNS`, one row per manifest image) is appended to ``regions`` when given.
-    The manifest is read lazily and at most a few images per worker are in flight, so memory holds
-    the tables (metadata) only, not the pixels of more than a handful of images.
+    The manifest is read lazily and at most a few batches of images per worker are in flight, so memory
+    holds the tables (metadata) only, not the pixels of more than a few dozen images.
     """
     tiles_dir = Path(tiles_dir)
     jobs = ((i, path, modality, cls, roi, tiles_dir) for i, (path, modality, cls) in
@@ -175,7 +175,8 @@ def cut_dataset_tiles(manifest: pd.DataFrame, roi: dict, tiles_dir: Path, worker
     recorder = _RegionRecorder()
     # our workers are the parallelism: OpenCV's own thread pool on top of them only adds contention.
     # Worker processes, not threads: the disc search's many small numpy steps hold the GIL (on 480
-    # vt60 frames 2 threads gave 1.3x one thread, 2 processes 1.9x: benchmarks/README.md).
+    # vt60 frames 2 threads gave 1.3x one thread, 2 processes 1.9x: benchmarks/README.md). OpenCV's
+    # pool is also shut down here, before the workers are forked: a child forked while it runs hangs.
     opencv_threads = cv2.getNumThreads()
     cv2.setNumThreads(1 if workers > 1 else opencv_threads)
     try:
