@@ -47,6 +47,10 @@ def test_every_declared_study_resolves_to_valid_params(default_params):
     marked = [n for n in default_params["studies"]["tradeoff"]["settings"]
               if is_default(default_params, apply_overrides(default_params, variant_overrides(default_params, "tradeoff", n)))]
     assert marked == ["main_default"]  # exactly one trade-off setting is the main job's own
+    for name in default_params["studies"]["tradeoff"]["settings"]:
+        if name != "main_default":  # capacity auto would probe widths and stop early: not the setting named
+            variant = apply_overrides(default_params, variant_overrides(default_params, "tradeoff", name))
+            assert variant["translation"]["capacity"]["mode"] == "fixed", name
 
 
 def test_schema_refuses_a_malformed_study(default_params):
@@ -91,8 +95,10 @@ TINY_STUDIES = {
             "round_trip": {"about": "paired", "paper": "-", "mode": "round_trip", "directions": ["v2t", "t2v"], "set": {}},
         },
     },
-    "tradeoff": {"direction": "v2t", "seeds": [0, 1], "base": {"preset.iterations": 4, "generate.train_share": 0.0},
-                 "settings": {"main_default": {"preset.iterations": 10}, "narrow": {"preset.ngf": 4, "preset.ndf": 4},
+    "tradeoff": {"direction": "v2t", "seeds": [0, 1],
+                 "base": {"preset.iterations": 4, "generate.train_share": 0.0, "translation.capacity.mode": "fixed"},
+                 "settings": {"main_default": {"preset.iterations": 10, "translation.capacity.mode": "auto"},
+                              "narrow": {"preset.ngf": 4, "preset.ndf": 4},
                               "size_16": {"roi.size": 16, "preset.size": 16, "preset.patch_layers": 1}}},
     "capacity": {"tolerance": 0.05},
 }
@@ -116,6 +122,10 @@ def test_studies_pipeline_end_to_end(tmp_path):
     assert frontier["on_frontier"].any() and (frontier["seeds"] == 2).all()
     assert frontier.loc[frontier["setting"] == "size_16", "changes_data"].item()
     assert np.isfinite(frontier[["seconds", "quality"]].to_numpy()).all()
+    narrow = json.loads((project / "data/studies/tradeoff/narrow/result.json").read_text())
+    assert {r["v2t"]["trained"]["all"]["width"] for r in narrow["runs"].values()} == {4}  # the width the setting names
+    default = json.loads((project / "data/studies/tradeoff/main_default/result.json").read_text())
+    assert {r["v2t"]["trained"]["all"]["capacity"] for r in default["runs"].values()} == {"auto"}
     capacity = json.loads((project / "data/studies/frontier/capacity.json").read_text())
     assert set(capacity["classes"]) == set(params["synthetic"]["classes"])
     assert all(c["setting"] in ("main_default", "narrow") for c in capacity["classes"].values())  # size_16 changes tiles

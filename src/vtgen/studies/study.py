@@ -183,18 +183,21 @@ def _quality(by_class: pd.DataFrame) -> pd.DataFrame:
 
 def run_direction(variant: dict, direction: str, pairs_dir: Path, work: Path, label: str,
                   progress: bool = True) -> tuple[pd.DataFrame, dict]:
-    """Train every ``translation.scope`` entry of ``direction``, generate and score: (quality table, timings)."""
+    """Train every ``translation.scope`` entry of ``direction``, generate and score: (quality table, timings;
+    ``trained`` gives each scope's width and steps as trained, which capacity auto may choose)."""
     from vtgen.stages.generate import run_generate
     from vtgen.stages.score import by_class, score_direction
     from vtgen.stages.train import run_train
 
-    timings = {"train_seconds": 0.0}
+    timings = {"train_seconds": 0.0, "trained": {}}
     for scope in variant["translation"]["scope"]:
         summary = run_train(variant, direction, scope, pairs_dir, work / "models" / direction / scope,
                             checkpoint_root=work / "checkpoints", progress=progress) \
             if not (work / "models" / direction / scope / "train.json").is_file() \
             else json.loads((work / "models" / direction / scope / "train.json").read_text())
         timings["train_seconds"] += summary["wall_seconds"]
+        timings["trained"][scope] = {"width": summary["settings"]["ngf"], "steps": summary["steps"],
+                                     "capacity": summary.get("capacity", {}).get("mode", "fixed")}
     started = time.perf_counter()
     run_generate(variant, direction, pairs_dir, work / "models" / direction, work / "generated" / direction,
                  progress=progress)
