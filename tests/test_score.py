@@ -199,3 +199,29 @@ def test_verdicts_rank_generated_only_where_real_beats_the_baselines():
     assert found["KID (random)"]["status"] == "uninformative"
     # losing to the nearest neighbour (real training images) only is no reason to call the metric uninformative
     assert found["FID (random)"]["status"] == "ok" and "sits" not in found["FID (classifier)"]["text"]
+
+
+@pytest.mark.parametrize("groups_per_class", [1, 2])
+def test_memorisation_warning_says_when_a_class_trained_on_one_group(groups_per_class):
+    """Generated images that copy the training images are flagged; where a class has a single training
+    group (vt60: one object instance per class), the warning says the check cannot tell copying from
+    learning the class."""
+    from vtgen.stages.score import ONE_GROUP_CAVEAT, memorisation_direction, verdicts
+
+    rng = np.random.default_rng(0)
+    classes = np.array(["a"] * 4 + ["b"] * 4)
+    train = torch.from_numpy(rng.integers(0, 255, (8, 3, 8, 8), dtype=np.uint8))
+    held = torch.from_numpy(rng.integers(0, 255, (8, 3, 8, 8), dtype=np.uint8))
+    groups = np.array([f"{c}/{i % groups_per_class}" for i, c in enumerate(classes)])
+    sets = {("generated", "all"): (train.clone(), classes, groups), "real_train": (train, classes, groups),
+            "real_test": (held, classes, np.array([f"{c}/test" for c in classes]))}
+    encoded = {k: {"pixels": v[0]} for k, v in sets.items()}
+    table = memorisation_direction("t2v", sets, encoded)
+    assert set(table.loc[table["class"] == "a", "train_groups"]) == {groups_per_class}
+    assert set(table.loc[table["class"] == "(all)", "train_groups"]) == {groups_per_class}
+    distribution = pd.DataFrame([{"direction": "t2v", "scope": "all", "class": "(all)", "candidate": "generated",
+                                  "view": "pixels", "metric": "kid", "value": 0.1, "low": np.nan, "high": np.nan,
+                                  "n": 8, "n_reference": 8}])
+    (found,) = [v for v in verdicts(distribution, table) if v["metric"] == "memorisation" and v["view"] == "pixels"]
+    assert found["status"] == "warning" and found["generated"] == 1.0
+    assert found["text"].endswith(ONE_GROUP_CAVEAT) == (groups_per_class == 1)

@@ -67,7 +67,12 @@ SCORE_COLUMNS = ["direction", "scope", "candidate", "class", "image", "group", "
 INTERVAL_METRICS = ["colour_ssim", "grey_ssim", "psnr", "set_colour_ssim", "nearest_real_colour_ssim"]
 DISTRIBUTION_COLUMNS = ["direction", "scope", "class", "candidate", "view", "metric", "value", "low", "high",
                         "n", "n_reference"]
-MEMORISATION_COLUMNS = ["direction", "class", "view", "candidate", "rate", "nearest_is_train_share", "n", "n_train"]
+MEMORISATION_COLUMNS = ["direction", "class", "view", "candidate", "rate", "nearest_is_train_share", "n", "n_train",
+                        "train_groups"]
+# a warning's reading where some class trained on one split group: copying and learning the class look alike there
+ONE_GROUP_CAVEAT = ("; at least one class has a single training group (one instance or session), so a generator that "
+                    "learns that class can only reproduce that group's look, and held-out real images come from "
+                    "other groups: here the check cannot tell copying from learning the class")
 BASELINES = ["nearest_neighbour", "mean_image", "flat_mean_colour", "blurred_real"]
 # metric: (family shown in verdicts, True when lower is better, target value for "better" = closer to it)
 DISTRIBUTION_METRICS = {"kid": ("KID", True), "fid": ("FID", True), "two_sample": ("two-sample accuracy", True),
@@ -385,10 +390,14 @@ def distribution_direction(direction: str, sets: dict, encoded: dict, encoders: 
 
 def memorisation_direction(direction: str, sets: dict, encoded: dict) -> pd.DataFrame:
     """Memorisation of the pooled model's generated test images (MEMORISATION_COLUMNS): per class and
-    over all, in each encoder's features and in pixels, beside the same rates for real held-out images."""
+    over all, in each encoder's features and in pixels, beside the same rates for real held-out images.
+    ``train_groups``: distinct training split groups (instances, sessions) of the class; for ``(all)``
+    the fewest of any class."""
     key = ("generated", "all") if ("generated", "all") in sets else next(
         k for k in sets if isinstance(k, tuple) and k[0] == "generated")
     gen_classes, train_classes, held_classes = sets[key][1], sets["real_train"][1], sets["real_test"][1]
+    groups = pd.Series(sets["real_train"][2]).groupby(pd.Series(train_classes)).nunique()
+    train_groups = {**groups.to_dict(), "(all)": int(groups.min()) if len(groups) else 0}
     rows = []
     for view in encoded["real_train"]:
         g, t, h = (encoded[k][view] for k in (key, "real_train", "real_test"))
@@ -403,11 +412,11 @@ def memorisation_direction(direction: str, sets: dict, encoded: dict) -> pd.Data
                 continue
             rows.append({"direction": direction, "class": name, "view": view, "candidate": "generated",
                          "rate": result.rate, "nearest_is_train_share": result.nearest_is_train_share,
-                         "n": int(gi.sum()), "n_train": int(ti.sum())})
+                         "n": int(gi.sum()), "n_train": int(ti.sum()), "train_groups": train_groups.get(name, 0)})
             rows.append({"direction": direction, "class": name, "view": view, "candidate": "real_heldout",
                          "rate": result.reference_rate,
                          "nearest_is_train_share": result.nearest_is_train_reference,
-                         "n": int(hi.sum()), "n_train": int(ti.sum())})
+                         "n": int(hi.sum()), "n_train": int(ti.sum()), "train_groups": train_groups.get(name, 0)})
     return pd.DataFrame(rows, columns=MEMORISATION_COLUMNS)
 
 
@@ -492,7 +501,8 @@ def verdicts(table: pd.DataFrame, memorisation: pd.DataFrame) -> list[dict]:
                            "text": f"{direction.upper()} memorisation ({view}): {gen['rate']:.3f} of generated test "
                                    f"images are closer to a training image than any held-out real image is "
                                    f"({'above' if worse else 'not above'} the real held-out rate {ref['rate']:.3f}; "
-                                   f"n = {int(gen['n'])} generated, {int(ref['n'])} real)"})
+                                   f"n = {int(gen['n'])} generated, {int(ref['n'])} real)"
+                                   + (ONE_GROUP_CAVEAT if worse and gen.get("train_groups", 2) == 1 else "")})
     return result
 
 
