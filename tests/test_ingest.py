@@ -1,5 +1,7 @@
 import json
 import re
+import subprocess
+import sys
 
 import numpy as np
 import pandas as pd
@@ -207,6 +209,30 @@ def test_a_worker_process_that_dies_is_an_error_that_says_so():
 
     with pytest.raises(RuntimeError, match="roi: a worker process ended abruptly"):
         list(stream_map(_dies_at_item_5, range(40), workers=2, desc="roi", processes=True, batch=2))
+
+
+OPENCV_FORK_SCRIPT = """
+import cv2, numpy as np
+from vtgen.io.images import stream_map
+
+def blur(i):
+    return float(cv2.GaussianBlur(np.full((512, 512), i, np.float32), (31, 31), 5).mean())
+
+cv2.setNumThreads(2)
+big = np.random.default_rng(0).random((2048, 2048), dtype=np.float32)
+for _ in range(5):
+    cv2.GaussianBlur(big, (31, 31), 5)  # OpenCV's own thread pool is running in the parent now
+assert [round(v) for v in stream_map(blur, range(24), 2, processes=True, batch=2)] == list(range(24))
+print("threads after", cv2.getNumThreads())
+"""
+
+
+def test_stream_map_processes_work_after_opencv_used_its_thread_pool_and_restore_its_threads():
+    """A process forked while OpenCV's thread pool runs hangs in its first OpenCV call: stream_map shuts
+    that pool while its worker processes live, and gives OpenCV its thread count back afterwards."""
+    done = subprocess.run([sys.executable, "-c", OPENCV_FORK_SCRIPT], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["threads", "after", "2"]
 
 
 WORKER_POOL_SCRIPT = """

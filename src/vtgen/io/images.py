@@ -256,8 +256,11 @@ def stream_map(func: Callable[[T], R], items: Iterable[T], workers: int, total: 
         from tqdm import tqdm
 
         bar = tqdm(total=total, desc=desc, unit="img")
-    pending: deque = deque()
+    opencv_threads = cv2.getNumThreads()
     if processes and workers > 1:
+        # OpenCV's thread pool is shut while the pool lives: a process forked while that pool runs hangs
+        # in its first OpenCV call (seen with the roi stage's workers), and the workers are the parallelism
+        cv2.setNumThreads(1)
         method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
         executor = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(method),
                                        initializer=_pool_worker, initargs=(os.getpid(),))
@@ -265,6 +268,16 @@ def stream_map(func: Callable[[T], R], items: Iterable[T], workers: int, total: 
     else:
         executor = ThreadPoolExecutor(max_workers=workers)
         tasks = ((_map_batch, func, [item]) for item in items)
+    try:
+        yield from _stream(executor, tasks, window, desc, bar)
+    finally:
+        cv2.setNumThreads(opencv_threads)
+
+
+def _stream(executor, tasks: Iterator, window: int, desc: str, bar) -> Iterator:
+    """:func:`stream_map`'s loop: submit ``tasks`` to ``executor`` keeping at most ``window`` in flight,
+    and yield their results in order."""
+    pending: deque = deque()
     with executor as pool:
         try:
             for task in tasks:

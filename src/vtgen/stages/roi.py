@@ -173,27 +173,20 @@ def cut_dataset_tiles(manifest: pd.DataFrame, roi: dict, tiles_dir: Path, worker
     positions = array("i")  # the manifest row (by position) of each tile
     boxes = {name: array("i") for name in _BOX_COLUMNS}
     recorder = _RegionRecorder()
-    # our workers are the parallelism: OpenCV's own thread pool on top of them only adds contention.
     # Worker processes, not threads: the disc search's many small numpy steps hold the GIL (on 480
-    # vt60 frames 2 threads gave 1.3x one thread, 2 processes 1.9x: benchmarks/README.md). OpenCV's
-    # pool is also shut down here, before the workers are forked: a child forked while it runs hangs.
-    opencv_threads = cv2.getNumThreads()
-    cv2.setNumThreads(1 if workers > 1 else opencv_threads)
-    try:
-        results = stream_map(_tile_one, jobs, workers, len(manifest), "roi", progress, processes=True)
-        for position, (result, channels, names) in enumerate(results):  # results come in manifest order
-            recorder.add(result, channels)
-            if result.reason:
-                if skipped is not None:
-                    skipped.append({"path": manifest["path"].iat[position], "reason": result.reason})
-                continue
-            for k, (tile_path, box) in enumerate(zip(names, result.boxes)):
-                tile_paths.append(tile_path)
-                positions.append(position)
-                for name, value in zip(_BOX_COLUMNS, (k, box.x, box.y, box.w, box.h)):
-                    boxes[name].append(value)
-    finally:
-        cv2.setNumThreads(opencv_threads)
+    # vt60 frames 2 threads gave 1.3x one thread, 2 processes 1.9x: benchmarks/README.md).
+    results = stream_map(_tile_one, jobs, workers, len(manifest), "roi", progress, processes=True)
+    for position, (result, channels, names) in enumerate(results):  # results come in manifest order
+        recorder.add(result, channels)
+        if result.reason:
+            if skipped is not None:
+                skipped.append({"path": manifest["path"].iat[position], "reason": result.reason})
+            continue
+        for k, (tile_path, box) in enumerate(zip(names, result.boxes)):
+            tile_paths.append(tile_path)
+            positions.append(position)
+            for name, value in zip(_BOX_COLUMNS, (k, box.x, box.y, box.w, box.h)):
+                boxes[name].append(value)
     if regions is not None:
         regions.append(recorder.table(manifest))
     rows = manifest.iloc[np.asarray(positions, np.intp)].reset_index(drop=True)  # one manifest row per tile
