@@ -367,7 +367,8 @@ def test_metrics_json_holds_headline_numbers_and_is_byte_identical_across_runs(t
         "memorisation_classifier": {"generated": 0.1, "real_heldout": 0.1}}))
     # final epoch (2), mean over seeds 0 and 1: 0.5 + 0.2 + 0.01
     assert flat(metrics["classify"]["tactile"]) == pytest.approx(
-        {"real": 0.71, "real+generated": 0.81, "gan_test": 0.5, "seeds": 2, "real_test_images": 4,
+        {"real": 0.71, "real+generated": 0.81, "gan_test": 0.5, "gan_test_vs_real": 0.5 / 0.71, "seeds": 2,
+         "real_test_images": 4,
          "gain_from_generated.real+generated": 0.1})
     assert metrics["counts"] == {"classes": 2, "images_kept": 12, "quarantined": 1, "models": 2}
 

@@ -359,8 +359,10 @@ def distribution_headline(distribution: pd.DataFrame, memorisation: pd.DataFrame
 
 
 def classify_headline(entry: dict) -> dict:
-    """Mean final-epoch test accuracy over seeds per setting, the GAN-test, the test-set size and the
-    accuracy gained from generated images per comparison (``gain_from_generated``)."""
+    """Mean final-epoch test accuracy over seeds per setting, the GAN-test, the GAN-test as a share of the
+    real-only test accuracy (``gan_test_vs_real``: how recognisable generated images are against real
+    ones), the test-set size and the accuracy gained from generated images per comparison
+    (``gain_from_generated``)."""
     table, summary = entry["accuracy"], entry["summary"]
     if summary.get("status", "ok") != "ok" or table.empty:
         return {}
@@ -368,6 +370,8 @@ def classify_headline(entry: dict) -> dict:
     result = {s: _number(g["test_accuracy"].mean()) for s, g in last.groupby("setting")}
     gan = last.loc[(last["setting"] == "real"), "gan_test_accuracy"].dropna()
     result["gan_test"] = _number(gan.mean()) if len(gan) else None
+    if result["gan_test"] is not None and result.get("real"):
+        result["gan_test_vs_real"] = _number(result["gan_test"] / result["real"])
     result["seeds"] = int(last["seed"].nunique())
     result["real_test_images"] = (summary.get("counts") or {}).get("real_test")
     result["gain_from_generated"] = _compact({c["setting"]: _number(c["difference"])
