@@ -6,7 +6,9 @@ direction on ``data/pairs`` (train split), translates the aligned test pairs, an
 * aligned Colour-SSIM of the generated images against their ground truth, overall and per class, next to
   the flat mean colour of the class's training targets (the score stage's ``flat_mean_colour``);
 * GAN-test: the share of generated test images that the classify stage's real-only classifier of the
-  target modality (``data/classify/<modality>/encoder.pt``) puts in their own class.
+  target modality (``data/classify/<modality>/encoder.pt``) puts in their own class;
+* spectrum: the score stage's spectrum distance (mean |difference| of log10 radial power profiles, decades)
+  of the generated images, and of the nearest-neighbour baseline's, against the real targets of the pairs.
 
     python benchmarks/translation_quality.py --direction t2v --seeds 0 1 --iterations 1500 \\
         --variant none:conditioning=none --variant class:conditioning=class
@@ -27,6 +29,7 @@ import torch.nn.functional as F
 import yaml
 
 from vtgen.core.classifier import predict, wilson_interval
+from vtgen.core.distribution import spectrum_distance
 from vtgen.core.domain import DIRECTIONS
 from vtgen.core.metrics import colour_ssim
 from vtgen.io.classifiers import load_classifier
@@ -65,7 +68,8 @@ def run_variant(params: dict, pairs, splits, direction: str, overrides: dict, se
     classes = np.array([test.classes[i] for i in keep.tolist()])
     labels = conditioning.labels(list(classes)) if conditioning.kind != "none" else None
     generated = translate(result.generator.eval(), inputs, conditioning=conditioning, labels=labels)
-    flat = reference_candidates(inputs, classes, train.inputs, train.targets, np.array(train.classes))["flat_mean_colour"]
+    references = reference_candidates(inputs, classes, train.inputs, train.targets, np.array(train.classes))
+    flat = references["flat_mean_colour"]
     hwc = lambda t: t.permute(0, 2, 3, 1).numpy()  # noqa: E731
     ssim, ssim_flat = colour_ssim(hwc(generated), hwc(truths), 255.0), colour_ssim(hwc(flat), hwc(truths), 255.0)
     side = encoder_record["size"]
@@ -77,7 +81,9 @@ def run_variant(params: dict, pairs, splits, direction: str, overrides: dict, se
     per_class = {c: (float(ssim[classes == c].mean()), float(ssim_flat[classes == c].mean()),
                      float(correct[classes == c].mean())) for c in sorted(set(classes))}
     return {"ssim": float(ssim.mean()), "flat": float(ssim_flat.mean()), "gan_test": float(correct.mean()),
-            "n": len(classes), "per_class": per_class, "seconds": seconds}
+            "n": len(classes), "per_class": per_class, "seconds": seconds,
+            "spectrum": spectrum_distance(truths, generated),
+            "spectrum_nn": spectrum_distance(truths, references["nearest_neighbour"])}
 
 
 def real_accuracy(params: dict, pairs, splits, direction: str, encoder, encoder_record, root: Path) -> tuple[float, int]:
@@ -117,18 +123,21 @@ def main() -> None:
                                  args.threads, encoder, record, data.resolve().parent)
             rows.append((name, seed, result))
             print(f"# {name} seed {seed}: SSIM {result['ssim']:.3f} (flat {result['flat']:.3f}), GAN-test "
-                  f"{result['gan_test']:.3f}, {result['seconds']:.0f} s", flush=True)
+                  f"{result['gan_test']:.3f}, spectrum {result['spectrum']:.3f} (nearest neighbour "
+                  f"{result['spectrum_nn']:.3f}), {result['seconds']:.0f} s", flush=True)
     real, n = real_accuracy(params, pairs, splits, args.direction, encoder, record, data.resolve().parent)
     low, high = wilson_interval(real, n)
     print(f"\n{args.direction}, {args.iterations} iterations, {args.threads} thread(s); n = aligned test pairs; "
           f"the classifier on the real targets of these pairs: {real:.3f} [{low:.3f}, {high:.3f}] (n = {n})\n")
-    print("| variant | seed | n | aligned Colour-SSIM | flat mean colour | classes above flat | GAN-test (95% CI) | train s |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| variant | seed | n | aligned Colour-SSIM | flat mean colour | classes above flat | GAN-test (95% CI) "
+          "| spectrum (nearest neighbour) | train s |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for name, seed, r in rows:
         above = sum(s > f for s, f, _ in r["per_class"].values())
         low, high = wilson_interval(r["gan_test"], r["n"])
         print(f"| {name} | {seed} | {r['n']} | {r['ssim']:.3f} | {r['flat']:.3f} | {above}/{len(r['per_class'])} | "
-              f"{r['gan_test']:.3f} [{low:.3f}, {high:.3f}] | {r['seconds']:.0f} |")
+              f"{r['gan_test']:.3f} [{low:.3f}, {high:.3f}] | {r['spectrum']:.3f} ({r['spectrum_nn']:.3f}) | "
+              f"{r['seconds']:.0f} |")
     if args.per_class:
         print("\n| variant | seed | class | SSIM | flat | GAN-test |\n|---|---|---|---|---|---|")
         for name, seed, r in rows:

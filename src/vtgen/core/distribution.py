@@ -288,8 +288,33 @@ def _grey(images: torch.Tensor) -> np.ndarray:
     return np.einsum("nchw,c->nhw", rgb, np.asarray(LUMA))
 
 
+def log_radial_profiles(grey: torch.Tensor) -> torch.Tensor:
+    """Per-image log10 radial power profiles of greyscale images in [0, 1], N x H x W -> N x (min(H, W) // 2),
+    in the dtype and on the device of ``grey``, differentiable (the spectral loss of training uses it).
+
+    The formula of :func:`radial_power_spectrum`: a periodic Hann window w, the window-weighted mean
+    removed, P = |FFT2(w * (grey - mean))|^2 / sum(w^2), bin k = round(S * |f|) for k = 1 .. S // 2,
+    log10(mean P in bin + QUANTISATION_PSD)."""
+    n, h, w = grey.shape
+    side = min(h, w)
+    hann = [0.5 - 0.5 * torch.cos(2 * math.pi * torch.arange(m, dtype=grey.dtype, device=grey.device) / m)
+            for m in (h, w)]
+    window = torch.outer(*hann)
+    mean = (grey * window).sum(dim=(1, 2), keepdim=True) / window.sum()
+    power = torch.fft.fft2((grey - mean) * window).abs().square() / window.square().sum()
+    radius = torch.hypot(torch.fft.fftfreq(h, dtype=torch.float64)[:, None],
+                         torch.fft.fftfreq(w, dtype=torch.float64)[None, :]) * side
+    bins = torch.round(radius).long().flatten()
+    keep = torch.nonzero((bins >= 1) & (bins <= side // 2)).flatten().to(grey.device)
+    bins = (bins.to(grey.device)[keep] - 1)
+    counts = torch.bincount(bins, minlength=side // 2).to(grey.dtype)
+    sums = torch.zeros(n, side // 2, dtype=grey.dtype, device=grey.device).index_add_(
+        1, bins, power.flatten(1)[:, keep])
+    return torch.log10(sums / counts + QUANTISATION_PSD)
+
+
 def _log_spectra(images: torch.Tensor) -> np.ndarray:
-    """Per-image log10 radial power profiles, N x (min(H, W) // 2)."""
+    """Per-image log10 radial power profiles of uint8-range RGB images (float64), N x (min(H, W) // 2)."""
     _check_images(images, "images")
     n, _, h, w = images.shape
     if min(h, w) < MIN_SPECTRUM_SIDE:
@@ -297,18 +322,7 @@ def _log_spectra(images: torch.Tensor) -> np.ndarray:
                          f"got {w} x {h}")
     if n == 0:
         raise ValueError("the power spectrum needs at least 1 image, got 0")
-    grey = _grey(images)
-    window = np.outer(0.5 - 0.5 * np.cos(2 * np.pi * np.arange(h) / h), 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(w) / w))
-    mean = (grey * window).sum(axis=(1, 2), keepdims=True) / window.sum()
-    power = np.abs(np.fft.fft2((grey - mean) * window)) ** 2 / (window ** 2).sum()
-    side = min(h, w)
-    radius = np.hypot(np.fft.fftfreq(h)[:, None], np.fft.fftfreq(w)[None, :]) * side
-    bins = np.rint(radius).astype(np.int64).ravel()
-    keep = (bins >= 1) & (bins <= side // 2)
-    counts = np.bincount(bins[keep], minlength=side // 2 + 1)[1:]
-    flat = power.reshape(n, -1)[:, keep]
-    sums = np.stack([np.bincount(bins[keep], weights=row, minlength=side // 2 + 1)[1:] for row in flat])
-    return np.log10(sums / counts + QUANTISATION_PSD)
+    return log_radial_profiles(torch.from_numpy(_grey(images))).numpy()
 
 
 def radial_power_spectrum(images: torch.Tensor) -> np.ndarray:
