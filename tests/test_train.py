@@ -274,7 +274,7 @@ def test_the_spectral_loss_gives_a_blurred_image_back_its_fine_detail():
     image's: the loss is differentiable and points the right way (the score stage's spectrum metric
     falls with it)."""
     from vtgen.core.distribution import spectrum_distance
-    from vtgen.core.translator import _log_profiles
+    from vtgen.core.spectrum import rgb_log_radial_profiles
 
     sharp = torch.rand(2, 3, 32, 32, generator=torch.Generator().manual_seed(0)) * 2 - 1
     image = torch.nn.functional.avg_pool2d(sharp, 3, stride=1, padding=1).clone().requires_grad_(True)
@@ -283,7 +283,7 @@ def test_the_spectral_loss_gives_a_blurred_image_back_its_fine_detail():
     optimiser = torch.optim.Adam([image], lr=0.01)
     for _ in range(200):
         optimiser.zero_grad()
-        torch.nn.functional.l1_loss(_log_profiles(image), _log_profiles(sharp)).backward()
+        torch.nn.functional.l1_loss(rgb_log_radial_profiles(image), rgb_log_radial_profiles(sharp)).backward()
         optimiser.step()
     after = spectrum_distance(as_uint8(sharp), as_uint8(image))
     assert before > 0.3 and after < before / 4

@@ -39,6 +39,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from vtgen.core.classifier import AlexNet, scale_images, wilson_interval
+from vtgen.core.spectrum import log_radial_profiles, LUMA, QUANTISATION_PSD
 
 __all__ = [
     "RANDOM_ENCODER_SEED", "RANDOM_ENCODER_CHANNELS", "BLUR_FRACTION", "QUANTISATION_PSD",
@@ -52,9 +53,7 @@ RANDOM_ENCODER_SEED = 0
 RANDOM_ENCODER_CHANNELS = (32, 64, 128, 128)
 MIN_ENCODER_SIDE = 16
 BLUR_FRACTION = 1 / 32  # default blur sigma = side / 32 (2 px at 64 px, 8 px at 256 px)
-QUANTISATION_PSD = (1 / 255) ** 2 / 12  # power spectral density of uint8 rounding noise, grey in [0, 1]
 MIN_SPECTRUM_SIDE = 8
-LUMA = (0.299, 0.587, 0.114)  # ITU-R BT.601
 
 
 # --------------------------------------------------------------------------- input checks
@@ -286,31 +285,6 @@ def _grey(images: torch.Tensor) -> np.ndarray:
     """BT.601 luma in [0, 1], float64, N x H x W."""
     rgb = images.detach().cpu().numpy().astype(np.float64) / 255.0
     return np.einsum("nchw,c->nhw", rgb, np.asarray(LUMA))
-
-
-def log_radial_profiles(grey: torch.Tensor) -> torch.Tensor:
-    """Per-image log10 radial power profiles of greyscale images in [0, 1], N x H x W -> N x (min(H, W) // 2),
-    in the dtype and on the device of ``grey``, differentiable (the spectral loss of training uses it).
-
-    The formula of :func:`radial_power_spectrum`: a periodic Hann window w, the window-weighted mean
-    removed, P = |FFT2(w * (grey - mean))|^2 / sum(w^2), bin k = round(S * |f|) for k = 1 .. S // 2,
-    log10(mean P in bin + QUANTISATION_PSD)."""
-    n, h, w = grey.shape
-    side = min(h, w)
-    hann = [0.5 - 0.5 * torch.cos(2 * math.pi * torch.arange(m, dtype=grey.dtype, device=grey.device) / m)
-            for m in (h, w)]
-    window = torch.outer(*hann)
-    mean = (grey * window).sum(dim=(1, 2), keepdim=True) / window.sum()
-    power = torch.fft.fft2((grey - mean) * window).abs().square() / window.square().sum()
-    radius = torch.hypot(torch.fft.fftfreq(h, dtype=torch.float64)[:, None],
-                         torch.fft.fftfreq(w, dtype=torch.float64)[None, :]) * side
-    bins = torch.round(radius).long().flatten()
-    keep = torch.nonzero((bins >= 1) & (bins <= side // 2)).flatten().to(grey.device)
-    bins = (bins.to(grey.device)[keep] - 1)
-    counts = torch.bincount(bins, minlength=side // 2).to(grey.dtype)
-    sums = torch.zeros(n, side // 2, dtype=grey.dtype, device=grey.device).index_add_(
-        1, bins, power.flatten(1)[:, keep])
-    return torch.log10(sums / counts + QUANTISATION_PSD)
 
 
 def _log_spectra(images: torch.Tensor) -> np.ndarray:

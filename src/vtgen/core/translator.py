@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from vtgen.core.distribution import LUMA, log_radial_profiles
+from vtgen.core.spectrum import rgb_log_radial_profiles
 from vtgen.core.gan import adversarial_loss, make_optimizer
 from vtgen.core.models import build_discriminator, conditional_pair, UNetGenerator
 
@@ -78,7 +78,7 @@ class TranslatorTraining:
         + feature_matching·(1/K)Σₖ |Dₖ(x, G(x)) − Dₖ(x, y)|₁ over D's K LeakyReLU outputs, the real
         ones taken from D's own step (pix2pixHD eq. 4, Wang et al. 2018; off when the weight is 0)
         + spectrum_matching·|s(G(x)) − s(y)|₁, s the log10 radial power profile of each image's grey
-        (:func:`vtgen.core.distribution.log_radial_profiles`, the score stage's spectrum metric;
+        (:func:`vtgen.core.spectrum.log_radial_profiles`, the score stage's spectrum metric;
         spectral regularisation after Durall et al. 2020; off when the weight is 0).
         Returns the detached 0-d losses named by :data:`LOSS_NAMES` (no host sync).
         """
@@ -117,7 +117,8 @@ class TranslatorTraining:
                 loss_g = loss_g + self.settings["feature_matching"] * matched / len(real_features)
             spectral = self.settings.get("spectrum_matching", 0.0)
             if spectral:
-                loss_g = loss_g + spectral * F.l1_loss(_log_profiles(fake.float()), _log_profiles(y))
+                loss_g = loss_g + spectral * F.l1_loss(rgb_log_radial_profiles(fake.float()),
+                                                   rgb_log_radial_profiles(y))
             self.opt_g.zero_grad(set_to_none=True)
             loss_g.backward()
             self.opt_g.step()
@@ -143,12 +144,6 @@ class TranslatorTraining:
         self.discriminator.load_state_dict(state["discriminator"])
         self.opt_g.load_state_dict(copy.deepcopy(state["opt_g"]))
         self.opt_d.load_state_dict(copy.deepcopy(state["opt_d"]))
-
-
-def _log_profiles(images: torch.Tensor) -> torch.Tensor:
-    """Log radial power profiles of N x 3 x S x S images in [-1, 1] (BT.601 grey in [0, 1])."""
-    luma = torch.tensor(LUMA, dtype=images.dtype, device=images.device)
-    return log_radial_profiles(torch.einsum("nchw,c->nhw", (images + 1) / 2, luma))
 
 
 def training_step_flops(settings: dict, input_channels: int = 3, precision: str = "fp32") -> int:
