@@ -243,13 +243,18 @@ def slow(i):
     time.sleep(0.05)
     return i
 
+if sys.argv[1] == "stuck":  # each worker hangs in its first OpenCV call, as after a fork during OpenCV's pool
+    import cv2
+    parent, set_threads = os.getpid(), cv2.setNumThreads
+    cv2.setNumThreads = lambda n: time.sleep(3600) if os.getpid() != parent else set_threads(n)
 print(os.getpid(), flush=True)
 for _ in stream_map(slow, range(10_000), 2, processes=True):
     pass
 """
 
 
-def test_stream_map_worker_processes_end_when_their_parent_is_killed():
+@pytest.mark.parametrize("workers", ["working", "stuck"])
+def test_stream_map_worker_processes_end_when_their_parent_is_killed(workers):
     import signal
     import subprocess
     import sys
@@ -259,7 +264,8 @@ def test_stream_map_worker_processes_end_when_their_parent_is_killed():
 
     from conftest import ENV
 
-    parent = subprocess.Popen([sys.executable, "-c", WORKER_POOL_SCRIPT], stdout=subprocess.PIPE, text=True, env=ENV)
+    parent = subprocess.Popen([sys.executable, "-c", WORKER_POOL_SCRIPT, workers], stdout=subprocess.PIPE, text=True,
+                              env=ENV)
     try:
         int(parent.stdout.readline())
         deadline = time.monotonic() + 60

@@ -198,10 +198,11 @@ R = TypeVar("R")
 def _pool_worker(parent: int) -> None:
     """Process-pool initializer: the pool's processes are the parallelism, so OpenCV and torch
     run one thread each inside them; and a worker ends when its parent is gone (a stage killed by
-    SIGKILL cannot stop its pool, whose workers would otherwise wait for tasks for ever)."""
+    SIGKILL cannot stop its pool, whose workers would otherwise wait for tasks for ever). The watchdog
+    starts first, so that a worker stuck in its first OpenCV call still ends with its parent."""
+    threading.Thread(target=_exit_with, args=(parent,), daemon=True).start()
     cv2.setNumThreads(1)
     torch.set_num_threads(1)
-    threading.Thread(target=_exit_with, args=(parent,), daemon=True).start()
 
 
 def _exit_with(parent: int) -> None:
