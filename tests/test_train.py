@@ -300,7 +300,14 @@ def test_a_state_dict_round_trip_gives_identical_next_steps(optimizer):
 
 # Computed with the training loop as it was before TranslatorTraining existed (commit f117911), 8 steps on
 # mixed_pairs(): the refactored loop gave bitwise-equal weights and histories on the project's CPU for all four.
-# On another CPU the kernels may round differently, hence a relative tolerance.
+# On another CPU the kernels may round differently, hence a relative tolerance, chosen per precision:
+# - fp32: 1e-5 on the losses, 1e-6 on the weight sum (float32 rounding, 2^-24, summed over 8 steps).
+# - bf16: the expectations were saved where bf16 is emulated (AVX2). CPUs with native bf16 (AVX512-BF16, AMX) run
+#   other oneDNN kernels that round and accumulate in another order: the losses differed by up to 2e-4 relative
+#   there (issue 25). Tolerance 2^-9 (bf16's unit roundoff) on the losses; 1e-4 on the weight sum, about 6x the
+#   whole fp32-to-bf16 gap of the expectations (1.6e-5): it still catches a loop that trains something else.
+TOLERANCES = {"bf16": (2.0 ** -9, 1e-4)}  # precision name: (losses, weight sum); the rest use FP32_TOLERANCES
+FP32_TOLERANCES = (1e-5, 1e-6)
 BEFORE_REFACTOR = {  # name: (overrides, run overrides, last logged row, sum of |generator state|)
     "fp32": ({}, {}, (0.699730634689331, 0.6948689222335815, 0.4656233787536621, 0.5018500089645386),
              4510.826030562677),
@@ -319,10 +326,12 @@ def test_training_reproduces_the_loop_before_the_refactor(name):
     overrides, run, last, total = BEFORE_REFACTOR[name]
     result = train_translator(mixed_pairs(), dict(SETTINGS, iterations=8, **overrides), dict(RUN, **run), "v2t", "all",
                               progress=False, validation=texture_pairs(seed=3))
+    losses_tolerance, weights_tolerance = TOLERANCES.get(name, FP32_TOLERANCES)
     row = result.history[-1]
-    assert [row[k] for k in (*LOSS_NAMES, "val_l1")] == pytest.approx(last, rel=1e-5)
+    assert [row[k] for k in (*LOSS_NAMES, "val_l1")] == pytest.approx(last, rel=losses_tolerance)
     state = result.generator.state_dict().values()
-    assert sum(float(v.double().abs().sum()) for v in state if v.is_floating_point()) == pytest.approx(total, rel=1e-6)
+    total_now = sum(float(v.double().abs().sum()) for v in state if v.is_floating_point())
+    assert total_now == pytest.approx(total, rel=weights_tolerance)
 
 
 # --- resume: what must match -----------------------------------------------------------------------------------
