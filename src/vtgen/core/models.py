@@ -8,6 +8,7 @@ channel axis (:func:`conditional_pair`) and returns raw logits (no sigmoid), to 
 * :class:`UNetGenerator` - pix2pix-style encoder/decoder with skip connections, down to 1x1.
 * :class:`GlobalDiscriminator` - four stride-2 convs and one linear layer: one logit per image.
 * :class:`PatchDiscriminator` - PatchGAN: a map of logits, one per overlapping patch.
+* :class:`ProjectionDiscriminator` - for class-paired data: a PatchGAN told the class, not the condition image.
 
 Every network is initialised with :func:`init_weights` (DCGAN/pix2pix convention).
 """
@@ -287,6 +288,48 @@ class PatchDiscriminator(nn.Module):
                                    f"use batch_size >= 2, fewer patch_layers (now {self.layers}) or a larger size "
                                    f"(input {height} x {width}, kernel {self.kernel})")
         return self.model(x)
+
+
+class ProjectionDiscriminator(nn.Module):
+    """Class-aware PatchGAN for class-paired data: judges an image (not a condition-image pair) *as an image
+    of class c*. A PatchGAN trunk without BatchNorm (``layers`` stride-2 convs and one stride-1 conv,
+    LeakyReLU 0.2) gives features φ (N x K x H' x W'); each patch's logit is ψ(φ) + ⟨e_c, φ⟩, a 1x1 conv plus
+    the inner product with a learned embedding of the class (the projection discriminator of Miyato &
+    Koyama 2018, eq. 3, per patch). No BatchNorm, so the R1 penalty's input gradient is per image.
+    Input ``N x in_channels x S x S`` and ``N`` class indices; output ``N x 1 x H' x W'`` raw logits."""
+
+    def __init__(self, num_classes: int, ndf: int = 64, layers: int = 3, kernel: int = 4,
+                 in_channels: int = 3) -> None:
+        super().__init__()
+        check_kernel(kernel)
+        if isinstance(layers, bool) or not isinstance(layers, int) or layers < 1:
+            raise ValueError(f"layers must be an integer >= 1, got {layers!r}")
+        if num_classes < 1:
+            raise ValueError(f"a projection discriminator needs at least one class, got {num_classes}")
+        self.in_channels, self.num_classes = in_channels, num_classes
+        blocks: list[nn.Module] = []
+        width = in_channels
+        for n in range(layers):
+            target = encoder_width(n, ndf)
+            blocks += [downsampling_conv(width, target, kernel, bias=True), nn.LeakyReLU(0.2)]
+            width = target
+        target = encoder_width(layers, ndf)
+        blocks += [nn.Conv2d(width, target, kernel, stride=1, padding=stride1_padding(kernel), bias=True),
+                   nn.LeakyReLU(0.2)]
+        self.trunk = nn.Sequential(*blocks)
+        self.logit = nn.Conv2d(target, 1, 1)
+        self.embedding = nn.Embedding(num_classes, target)
+        self.apply(init_weights)
+        nn.init.normal_(self.embedding.weight, 0.0, 0.02)
+
+    def forward(self, x: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+        check_image_batch(x, self.in_channels, None, type(self).__name__)
+        if labels.shape != (x.shape[0],):
+            raise ValueError(f"{type(self).__name__}: expected {x.shape[0]} class indices, got shape "
+                             f"{tuple(labels.shape)}")
+        features = self.trunk(x)
+        projection = (self.embedding(labels.to(x.device))[:, :, None, None] * features).sum(dim=1, keepdim=True)
+        return self.logit(features) + projection
 
 
 def build_discriminator(kind: str, size: int, ndf: int, kernel: int, patch_layers: int,

@@ -1,7 +1,14 @@
 """One conditional GAN under training: generator, discriminator, their optimisers and one training step.
 
-:class:`TranslatorTraining` is the pix2pix iteration (Isola et al. 2017) and nothing else: no data,
-no files, no logging. The train stage (:mod:`vtgen.stages.train`) loops around it.
+:class:`TranslatorTraining` is one iteration of one of two objectives and nothing else: no data, no files,
+no logging. The train stage (:mod:`vtgen.stages.train`) loops around it.
+
+* ``pix2pix`` (Isola et al. 2017): for pixel- or name-paired data, where the target belongs to the input.
+* ``class_gan``: for class-paired data, where the target is a random image of the input's class and a pixel
+  loss towards it has the class mean as its optimum (the collapse measured in issue 24). No pixel loss; a
+  projection discriminator told the class (Miyato & Koyama 2018) judges augmented images (DiffAugment, Zhao
+  et al. 2020) with an R1 penalty (Mescheder et al. 2018); a mode-seeking term (Mao et al. 2019) makes
+  outputs of two inputs of one class differ as their inputs do.
 """
 
 from __future__ import annotations
@@ -13,13 +20,16 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from vtgen.core.augment import diff_augment
 from vtgen.core.spectrum import rgb_log_radial_profiles
 from vtgen.core.gan import adversarial_loss, make_optimizer
-from vtgen.core.models import build_discriminator, conditional_pair, UNetGenerator
+from vtgen.core.models import build_discriminator, conditional_pair, ProjectionDiscriminator, UNetGenerator
 
 LOSS_NAMES = ("loss_d", "loss_g_gan", "loss_g_l1")
 STATE_KEYS = ("generator", "discriminator", "opt_g", "opt_d")
 PRECISIONS = ("fp32", "bf16")
+OBJECTIVES = ("pix2pix", "class_gan")
+MODE_SEEKING_EPS = 1e-5  # Mao et al. 2019's epsilon in 1 / (ratio + eps)
 
 
 def discriminator_features(discriminator: nn.Module, pair: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
@@ -46,17 +56,26 @@ class TranslatorTraining:
     runs the forward passes under bf16 autocast (weights, losses and optimiser state stay fp32).
     ``input_channels`` is the generator's input: the 3 image channels plus those of a
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
+    ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
+    ``diffaugment`` and ``mode_seeking`` (see :meth:`class_step`) and needs ``num_classes``.
     """
 
     def __init__(self, settings: dict, device: torch.device | str = "cpu", precision: str = "fp32",
-                 input_channels: int = 3) -> None:
+                 input_channels: int = 3, num_classes: int = 0) -> None:
         if precision not in PRECISIONS:
             raise ValueError(f"unknown precision '{precision}' (allowed: {', '.join(PRECISIONS)})")
+        self.objective = settings.get("objective", "pix2pix")
+        if self.objective not in OBJECTIVES:
+            raise ValueError(f"unknown objective '{self.objective}' (allowed: {', '.join(OBJECTIVES)})")
         self.settings, self.device, self.precision = settings, torch.device(device), precision
         size, kernel = settings["size"], settings["kernel"]
         self.generator = UNetGenerator(size, settings["ngf"], kernel, in_channels=input_channels).to(self.device).train()
-        self.discriminator = build_discriminator(settings["discriminator"], size, settings["ndf"], kernel,
-                                                 settings["patch_layers"], input_channels + 3).to(self.device).train()
+        if self.objective == "class_gan":
+            self.discriminator = ProjectionDiscriminator(num_classes, settings["ndf"], settings["patch_layers"],
+                                                         kernel).to(self.device).train()
+        else:
+            self.discriminator = build_discriminator(settings["discriminator"], size, settings["ndf"], kernel,
+                                                     settings["patch_layers"], input_channels + 3).to(self.device).train()
         self.opt_g, self.opt_d = (make_optimizer(net.parameters(), settings["optimizer"], settings["lr"],
                                                  settings["betas"], multi_tensor_on=self.device.type)
                                   for net in (self.generator, self.discriminator))
@@ -69,7 +88,16 @@ class TranslatorTraining:
     def _loss(self, logits: torch.Tensor, real: bool) -> torch.Tensor:
         return adversarial_loss(logits, real, self.settings["gan_loss"])
 
-    def step(self, x: torch.Tensor, y: torch.Tensor) -> dict[str, torch.Tensor]:
+    def step(self, x: torch.Tensor, y: torch.Tensor, labels: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """One iteration of the objective: :meth:`class_step` for 'class_gan' (``labels`` needed), else
+        :meth:`pix2pix_step`."""
+        if self.objective == "class_gan":
+            if labels is None:
+                raise ValueError("the class_gan objective needs the class index of every batch row")
+            return self.class_step(x, y, labels)
+        return self.pix2pix_step(x, y)
+
+    def pix2pix_step(self, x: torch.Tensor, y: torch.Tensor) -> dict[str, torch.Tensor]:
         """One iteration on a batch (conditions ``x``, N x input_channels x S x S, and targets ``y``,
         N x 3 x S x S, in [-1, 1] on the device).
 
@@ -126,6 +154,49 @@ class TranslatorTraining:
             self.discriminator.requires_grad_(True)
         return loss_g_gan, loss_g_l1
 
+    def class_step(self, x: torch.Tensor, y: torch.Tensor, labels: torch.Tensor) -> dict[str, torch.Tensor]:
+        """One class-paired iteration. Rows ``2k`` and ``2k+1`` of the batch hold two inputs of one class
+        (``labels``, N class indices; N even); ``y`` are real targets of those classes, not partners of ``x``.
+
+        With A the DiffAugment of :func:`vtgen.core.augment.diff_augment` (identity when ``diffaugment`` is
+        false) and D(·, c) the projection discriminator:
+        D minimises ½[L(D(A(y), c), real) + L(D(A(G(x)), c), fake)] + (r1/2)·E‖∇_y D(A(y), c)‖² (R1,
+        Mescheder et al. 2018, on the real images; the gradient of the patch logits' sum per image);
+        then G minimises L(D(A(G(x)), c), real) + mode_seeking / (r + ε), with
+        r = mean|G(x₂ₖ) − G(x₂ₖ₊₁)| / mean|x₂ₖ − x₂ₖ₊₁| over the image channels (Mao et al. 2019, eq. 3,
+        with the second input of the class in place of a second noise draw; ε = 1e-5).
+        ``loss_g_l1`` is |G(x) − y| against the random partner: logged, never trained on.
+        """
+        cfg = self.settings
+        augment = diff_augment if cfg.get("diffaugment", True) else (lambda images: images)
+        r1, seeking = cfg.get("r1", 0.0), cfg.get("mode_seeking", 0.0)
+        labels = labels.to(self.device)
+        with self._autocast():
+            fake = self.generator(x)
+        real = y.detach().requires_grad_(bool(r1))
+        with self._autocast():
+            d_real = self.discriminator(augment(real), labels)
+            d_fake = self.discriminator(augment(fake.detach()), labels)
+        loss_d = 0.5 * (self._loss(d_real, True) + self._loss(d_fake, False))
+        if r1:
+            loss_d = loss_d + r1 * r1_penalty(d_real, real)
+        self.opt_d.zero_grad(set_to_none=True)
+        loss_d.backward()
+        self.opt_d.step()
+        self.discriminator.requires_grad_(False)
+        try:
+            with self._autocast():
+                d_fake = self.discriminator(augment(fake), labels)
+            loss_g_gan = self._loss(d_fake, True)
+            loss_g = loss_g_gan + seeking * mode_seeking_loss(fake.float(), x[:, :3]) if seeking else loss_g_gan
+            self.opt_g.zero_grad(set_to_none=True)
+            loss_g.backward()
+            self.opt_g.step()
+        finally:
+            self.discriminator.requires_grad_(True)
+        loss_g_l1 = F.l1_loss(fake.detach().float(), y)
+        return dict(zip(LOSS_NAMES, (loss_d.detach(), loss_g_gan.detach(), loss_g_l1)))
+
     def generator_norm(self) -> float:
         """L2 norm of all generator parameters, ‖θ_G‖₂ = sqrt(Σ θ²) (a host sync)."""
         return float(torch.linalg.vector_norm(torch.stack(
@@ -146,6 +217,25 @@ class TranslatorTraining:
         self.opt_d.load_state_dict(copy.deepcopy(state["opt_d"]))
 
 
+def r1_penalty(real_logits: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
+    """(1/2)·E‖∇ₓ Σ D(x)‖² over the real images ``real`` (which require grad), Σ over each image's logits
+    (Mescheder et al. 2018, eq. 9, without γ); differentiable (create_graph) so D can be trained on it."""
+    (gradient,) = torch.autograd.grad(real_logits.float().sum(), real, create_graph=True)
+    return 0.5 * gradient.pow(2).sum(dim=tuple(range(1, gradient.dim()))).mean()
+
+
+def mode_seeking_loss(outputs: torch.Tensor, inputs: torch.Tensor) -> torch.Tensor:
+    """1 / (r + ε), r = mean|o₂ₖ − o₂ₖ₊₁| / mean|i₂ₖ − i₂ₖ₊₁| over the row pairs (2k, 2k+1) of the batch
+    (Mao et al. 2019, eq. 3, ε = 1e-5): small when outputs differ at least as much as their inputs do.
+    The input difference is detached (it is data); N must be even and at least 2."""
+    n = outputs.shape[0]
+    if n < 2 or n % 2:
+        raise ValueError(f"mode seeking pairs rows (2k, 2k+1): the batch needs an even size >= 2, got {n}")
+    out_gap = (outputs[0::2] - outputs[1::2]).abs().mean()
+    in_gap = (inputs[0::2] - inputs[1::2]).abs().mean().detach().float()
+    return 1.0 / (out_gap / in_gap.clamp_min(MODE_SEEKING_EPS) + MODE_SEEKING_EPS)
+
+
 def training_step_flops(settings: dict, input_channels: int = 3, precision: str = "fp32") -> int:
     """Floating-point operations of one :meth:`TranslatorTraining.step` (forward and backward of both networks)
     at ``settings``' size, widths and batch, counted by ``torch.utils.flop_counter.FlopCounterMode`` on the CPU
@@ -154,11 +244,11 @@ def training_step_flops(settings: dict, input_channels: int = 3, precision: str 
 
     rng = torch.get_rng_state()
     try:
-        training = TranslatorTraining(settings, "cpu", precision, input_channels)
+        training = TranslatorTraining(settings, "cpu", precision, input_channels, num_classes=2)
         size, batch = settings["size"], settings["batch_size"]
         x, y = torch.rand(batch, input_channels, size, size) * 2 - 1, torch.rand(batch, 3, size, size) * 2 - 1
         with FlopCounterMode(display=False) as counter:
-            training.step(x, y)
+            training.step(x, y, torch.arange(batch) % 2)
         return int(counter.get_total_flops())
     finally:
         torch.set_rng_state(rng)

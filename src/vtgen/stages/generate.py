@@ -74,18 +74,32 @@ def select_inputs(splits: pd.DataFrame, pairs: pd.DataFrame, direction: str, sco
     return selected[["split", "class", "input_path", "ground_truth_path"]].reset_index(drop=True)
 
 
-def comparison_sheet(rows: pd.DataFrame, image_root: Path, per_class: int = 4) -> np.ndarray:
-    """One row per class: inputs | generated (``output_name`` under ``image_root``) | ground truth (grey when none)."""
+def comparison_sheet(rows: pd.DataFrame, image_root: Path, per_class: int = 4,
+                     real_examples: dict[str, list[str]] | None = None) -> np.ndarray:
+    """One row per class: inputs | generated (``output_name`` under ``image_root``) | ground truth where the
+    pair is aligned, else ``real_examples[class]`` (real target-modality images of the class, not partners of
+    the inputs: what generated images of the class should look like); grey when neither exists."""
     def read(path) -> np.ndarray | None:
         return np.asarray(Image.open(path).convert("RGB")) if path else None
 
+    real_examples = real_examples or {}
     sheet_rows = []
     for cls, group in rows.groupby("class", sort=True):
         group = group.head(per_class)
+        truths = list(group["ground_truth_path"])
+        if not any(truths):
+            truths = (list(real_examples.get(cls, [])) + [""] * per_class)[:len(group)]
         sheet_rows.append((cls, [[read(p) for p in group["input_path"]],
                                  [read(image_root / n) for n in group["output_name"]],
-                                 [read(p) for p in group["ground_truth_path"]]]))
-    return labelled_sheet(sheet_rows, ["input", "generated", "ground truth"], per_class)
+                                 [read(p) for p in truths]]))
+    return labelled_sheet(sheet_rows, ["input", "generated", "ground truth, or real of the class"], per_class)
+
+
+def real_examples_of(splits: pd.DataFrame, direction: str, per_class: int = 4) -> dict[str, list[str]]:
+    """The first ``per_class`` real test tiles (by path) of the direction's target modality, per class."""
+    target = DIRECTIONS[direction][1]
+    rows = splits[(splits["split"] == "test") & (splits["modality"] == target)].sort_values("path")
+    return {cls: list(group["path"].head(per_class)) for cls, group in rows.groupby("class", sort=True)}
 
 
 def _training_status(model_dir: Path) -> str:
@@ -139,7 +153,8 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
         table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame(columns=GENERATED_COLUMNS)
         table[GENERATED_COLUMNS].to_parquet(tmp / "generated.parquet", index=False)
         if tables:
-            write_png(tmp / "preview.png", comparison_sheet(table[table["split"] == "test"], tmp))
+            write_png(tmp / "preview.png", comparison_sheet(table[table["split"] == "test"], tmp,
+                                                            real_examples=real_examples_of(splits, direction)))
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     for scope, counts in summary["scopes"].items():
         print(f"generate {direction}/{scope}: {counts['test']} test and {counts['train']} training inputs translated "

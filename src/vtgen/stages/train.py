@@ -43,6 +43,7 @@ from vtgen.core.models import count_parameters, UNetGenerator
 from vtgen.core.translator import LOSS_NAMES, STATE_KEYS, training_step_flops, TranslatorTraining
 from vtgen.io.checkpoints import input_preparation, save_atomic, save_generator
 from vtgen.io.images import atomic_output_dir, read_tiles
+from vtgen.io.limits import check_training_fits
 from vtgen.io.params import model_settings
 from vtgen.io.provenance import code_fingerprint
 from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
@@ -85,6 +86,13 @@ class PairData:
     def __post_init__(self) -> None:
         if self.fixed is None:
             self.fixed = self.aligned
+
+    def pairs_by_class(self) -> dict[str, torch.Tensor]:
+        """Indices of the pairs of each class (computed once)."""
+        if not hasattr(self, "_by_class"):
+            classes = np.array(self.classes)
+            self._by_class = {c: torch.from_numpy(np.flatnonzero(classes == c)) for c in sorted(set(self.classes))}
+        return self._by_class
 
     def fingerprint(self) -> str:
         """SHA-256 of the pixel data and pairing, so a checkpoint is only resumed on the same data."""
@@ -132,9 +140,16 @@ def draw_batch(data: PairData, batch_size: int, generator: torch.Generator) -> t
     return inputs, targets
 
 
-def _draw(data: PairData, batch_size: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, list[int]]:
-    """:func:`draw_batch` plus the pair index of each batch row."""
+def _draw(data: PairData, batch_size: int, generator: torch.Generator,
+          class_row_pairs: bool = False) -> tuple[torch.Tensor, torch.Tensor, list[int]]:
+    """:func:`draw_batch` plus the pair index of each batch row. With ``class_row_pairs``, rows 2k and 2k+1
+    are two pairs of one class (the second drawn among the pairs of the first's class)."""
     index = torch.randint(0, len(data.targets), (batch_size,), generator=generator)
+    if class_row_pairs:
+        by_class = data.pairs_by_class()
+        for row in range(1, batch_size, 2):
+            same = by_class[data.classes[int(index[row - 1])]]
+            index[row] = same[torch.randint(0, len(same), (1,), generator=generator)]
     inputs = data.inputs[index]  # advanced indexing already copies
     for row, i in enumerate(index.tolist()):
         if not data.fixed[i]:
@@ -156,6 +171,48 @@ def prepare_batch(data: PairData, batch_size: int, noise: bool, sampler: torch.G
     if conditioning is not None and conditioning.kind != "none":
         x = conditioning.condition(x, conditioning.labels([data.classes[i] for i in index]))
     return x, y
+
+
+def prepare_class_batch(data: PairData, batch_size: int, noise: bool, sampler: torch.Generator,
+                        device: torch.device, conditioning: Conditioning,
+                        class_names: tuple[str, ...]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A batch for the class_gan objective: as :func:`prepare_batch`, with rows (2k, 2k+1) two inputs of one
+    class, plus each row's class index in ``class_names``. Random positioning moves input and target apart
+    (they are not partners)."""
+    inputs, targets, index = _draw(data, batch_size, sampler, class_row_pairs=True)
+    x, y = to_model_range(inputs).to(device), to_model_range(targets).to(device)
+    if noise:
+        x, _ = random_positioning(x, x, sampler)
+        y, _ = random_positioning(y, y, sampler)
+    names = [data.classes[i] for i in index]
+    if conditioning.kind != "none":
+        x = conditioning.condition(x, conditioning.labels(names))
+    position = {name: i for i, name in enumerate(class_names)}
+    return x, y, torch.tensor([position[name] for name in names], dtype=torch.int64)
+
+
+def resolve_objective(setting: str, data: PairData) -> tuple[str, str]:
+    """``translation.objective`` for this model's training pairs, and why: ``auto`` gives ``class_gan`` when
+    no training pair is a pixel or name pair (every target is a random image of the input's class), else
+    ``pix2pix``; 'pix2pix' and 'class_gan' are taken as set."""
+    fixed, total = int(data.fixed.sum()), len(data.fixed)
+    if setting != "auto":
+        return setting, "as set"
+    if fixed:
+        return "pix2pix", f"auto: {fixed} of {total} training pairs are pixel or name pairs"
+    return "class_gan", (f"auto: all {total} training pairs are class pairs, whose pixel loss would pull every "
+                         f"output to its class mean")
+
+
+def objective_settings(settings: dict, translation: dict, objective: str) -> dict:
+    """The preset block with the class_gan keys of ``translation.class_gan`` added when that objective
+    trains (the pix2pix settings stay exactly the preset's)."""
+    if objective != "class_gan":
+        return settings
+    if settings["batch_size"] < 2 or settings["batch_size"] % 2:
+        raise ValueError(f"the class_gan objective pairs the rows of a batch: batch_size must be even and >= 2, "
+                         f"got {settings['batch_size']} (presets.{translation['preset']}.batch_size)")
+    return dict(settings, objective="class_gan", **translation["class_gan"])
 
 
 def validation_l1(generator: UNetGenerator, validation: PairData, batch_size: int = 32,
@@ -264,6 +321,11 @@ class Job:
     conditioning: Conditioning
     eval_every: int | None = None  # steps between per-class validations (capacity auto), else None
     stop: object = None  # callable(history) -> bool, checked after each per-class validation
+    class_names: tuple[str, ...] = ()  # the class_gan objective's class index (sorted training classes)
+
+    @property
+    def class_gan(self) -> bool:
+        return self.settings.get("objective") == "class_gan"
 
     def evaluates_at(self, step: int) -> bool:
         return bool(self.eval_every) and self.validation is not None and (
@@ -364,7 +426,7 @@ def _fresh(job: Job) -> tuple[TranslatorTraining, torch.Generator]:
     torch.manual_seed(job.run["seed"])
     sampler = torch.Generator().manual_seed(job.run["seed"])
     return TranslatorTraining(job.settings, job.device, job.run["precision"],
-                              3 + job.conditioning.extra_channels), sampler
+                              3 + job.conditioning.extra_channels, len(job.class_names)), sampler
 
 
 def _baseline(training: TranslatorTraining, validation: PairData | None, conditioning: Conditioning) -> dict:
@@ -548,7 +610,7 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
     job = Job(f"{direction}/{scope}{f' ({label})' if label else ''}", settings, run, device,
               Path(checkpoint_dir) / CHECKPOINT_NAME if checkpoint_dir else None,
               checkpoint_keys(settings, run, direction, scope, data, conditioning), validation,
-              conditioning or Conditioning(), eval_every, stop)
+              conditioning or Conditioning(), eval_every, stop, tuple(sorted(set(data.classes))))
     training, sampler, state = _start(job)
     for row in state.history:  # a resumed run logs the rows it inherits again, so the log is whole
         if on_log:
@@ -557,8 +619,12 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
     with _progress_bar(job, state.step, progress) as bar:
         stopped = bool(stop and state.history and stop(state.history))
         while state.step < settings["iterations"] and not stopped:
-            x, y = prepare_batch(data, settings["batch_size"], settings["noise"], sampler, device, job.conditioning)
-            window.append(torch.stack(list(training.step(x, y).values())))
+            if job.class_gan:
+                batch = prepare_class_batch(data, settings["batch_size"], settings["noise"], sampler, device,
+                                            job.conditioning, job.class_names)
+            else:
+                batch = prepare_batch(data, settings["batch_size"], settings["noise"], sampler, device, job.conditioning)
+            window.append(torch.stack(list(training.step(*batch).values())))
             state.step += 1
             if _logs_at(state.step, job):
                 row = _end_window(window, training, sampler, job, state, started)
@@ -738,9 +804,14 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
     validation = (load_pair_data(pairs, splits, direction, scope, settings["size"], split="val")
                   if not pairs_in(pairs, "val", scope).empty else None)
     conditioning = build_conditioning(run["conditioning"][direction], pairs, scope, data)
+    settings = check_training_fits(settings, len(data.targets), f"presets.{run['preset']}", f"train {direction}/{scope}",
+                                   resolve_device(run["device"]).type)
+    objective, objective_reason = resolve_objective(run["objective"], data)
+    settings = objective_settings(settings, run, objective)
     print(f"train {direction}/{scope}: {len(data.targets)} training pairs ({int(data.aligned.sum())} aligned), "
           f"preset '{run['preset']}' at {settings['size']} px, {settings['iterations']} iterations of batch "
-          f"{settings['batch_size']}, precision {run['precision']}, conditioning {conditioning.kind}")
+          f"{settings['batch_size']}, precision {run['precision']}, conditioning {conditioning.kind}, "
+          f"objective {objective} ({objective_reason})")
     with atomic_output_dir(out_dir) as tmp:
         live, log = _live_logger(tmp / "dvclive")
         checkpoints = Path(checkpoint_root) / direction / scope
@@ -757,6 +828,7 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
         save_generator(tmp / "generator.pt", result.generator, settings, direction, scope, preparation, conditioning)
         summary = _summary(result, data, validation, settings, run, direction, scope, conditioning)
         summary["capacity"] = capacity
+        summary["objective"] = {"name": objective, "reason": objective_reason}
         (tmp / "train.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"train {direction}/{scope}: {result.steps} steps in {result.seconds:.1f} s "
           f"({summary['seconds_per_iteration']:.3f} s/it) -> {out_dir}")

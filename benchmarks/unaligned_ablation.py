@@ -1,0 +1,234 @@
+"""Objectives for class-paired data, measured against issue 24's goals, per variant, direction and seed.
+
+On a finished run folder's ``data/pairs`` (any dataset: the pairs say which images exist and their
+splits), this trains one direction per variant and seed, translates every test input, and prints the
+goal's numbers in the classifier view (features of a real-only classifier of the target modality, trained
+here on the real training images of the run with the classify stage's settings):
+
+* diversity: within-class diversity of generated images over that of real test images of the class (mean
+  pairwise distance; pixels: 64 px grey L1; features: L2), median over classes, 95% bootstrap interval over
+  classes (goal 1: >= 0.5);
+* recall and coverage (k = 5) of generated vs the real training targets, beside the real test images' own
+  (goal 1: >= half of real's);
+* FID and KID (classifier view) of generated, flat mean colour, mean image and real test images against the
+  real training targets (goal 2: generated below both no-learning baselines, outside the KID interval);
+* GAN-test: the target classifier's accuracy on the generated images (Wilson 95% interval), beside its
+  accuracy on real test targets and the input-modality classifier's on the real test inputs (goal 3:
+  >= 0.8 x the lower of the two);
+* memorisation rate of generated vs real test images (goal 4: within the interval of real's).
+
+    python benchmarks/unaligned_ablation.py --run /tmp/xu --direction v2t --seeds 0 1 \\
+        --variant pix2pix:objective=pix2pix --variant class_gan:objective=class_gan
+
+A variant is ``name:key=value;key=value``; keys are ``translation`` keys (objective, conditioning as one kind
+for this direction), ``class_gan.<key>`` or preset keys. SYNTHETIC results must be labelled as such.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+import yaml
+
+from vtgen.core.classifier import predict, train_classifier, wilson_interval
+from vtgen.core.distribution import (classifier_encoder, fid, flat_colour_set, image_features, kid,
+                                     mean_image_set, memorisation, prdc_scores)
+from vtgen.core.domain import DIRECTIONS
+from vtgen.io.images import read_tiles
+from vtgen.io.params import model_settings, validate_params
+from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
+from vtgen.stages.generate import translate
+from vtgen.stages.train import (build_conditioning, load_pair_data, objective_settings, resolve_objective,
+                                train_translator)
+
+BOOTSTRAP = 2000
+
+
+def parse_variant(text: str) -> tuple[str, dict]:
+    name, _, body = text.partition(":")
+    overrides = {}
+    for item in filter(None, body.split(";")):
+        key, _, value = item.partition("=")
+        overrides[key.strip()] = yaml.safe_load(value)
+    return name, overrides
+
+
+def resized(images: torch.Tensor, side: int) -> torch.Tensor:
+    if images.shape[-1] == side:
+        return images
+    return F.interpolate(images.float(), size=(side, side), mode="area").round().clamp(0, 255).to(torch.uint8)
+
+
+def real_classifier(splits, modality: str, params: dict, root: Path, classes: list[str]):
+    """The classify stage's real-only classifier of ``modality`` (seed 0) and its test accuracy with n."""
+    cfg = params["classify"]
+    settings = {k: cfg[k] for k in ("size", "width", "epochs", "batch_size", "lr")}
+    index = {c: i for i, c in enumerate(classes)}
+
+    def load(split):
+        rows = splits[(splits["split"] == split) & (splits["modality"] == modality)].sort_values("path")
+        return (read_tiles(list(rows["path"]), cfg["size"], root),
+                torch.tensor([index[c] for c in rows["class"]]))
+
+    (train_x, train_y), (test_x, test_y) = load("train"), load("test")
+    run = train_classifier(train_x, train_y, test_x, test_y, len(classes), settings, seed=0)
+    return run.model, run.test_accuracy[-1], len(test_y)
+
+
+def pairwise_spread(values: torch.Tensor, p: float) -> float:
+    """Mean pairwise distance (L``p``) among the rows of ``values`` (N x D), N >= 2."""
+    d = torch.cdist(values.double(), values.double(), p=p)
+    n = len(values)
+    return float(d.sum() / (n * (n - 1)))
+
+
+def diversity_ratio(generated: torch.Tensor, real: torch.Tensor, classes_gen: np.ndarray, classes_real: np.ndarray,
+                    view) -> tuple[float, float, float]:
+    """Median over classes of spread(generated of c) / spread(real of c), with a 95% bootstrap interval over
+    classes. ``view(images) -> (rows, p)`` turns images into vectors and names the norm."""
+    ratios = []
+    for c in sorted(set(classes_gen) & set(classes_real)):
+        g, r = generated[classes_gen == c], real[classes_real == c]
+        if len(g) < 2 or len(r) < 2:
+            continue
+        (gv, p), (rv, _) = view(g), view(r)
+        ratios.append(pairwise_spread(gv, p) / max(pairwise_spread(rv, p), 1e-12))
+    ratios = np.array(ratios)
+    draws = np.random.default_rng(0).choice(ratios, (BOOTSTRAP, len(ratios)))
+    low, high = np.quantile(np.median(draws, axis=1), [0.025, 0.975])
+    return float(np.median(ratios)), float(low), float(high)
+
+
+def grey_pixels(images: torch.Tensor) -> tuple[torch.Tensor, float]:
+    grey = resized(images, 64).float().mean(dim=1) / 255.0
+    return grey.reshape(len(images), -1), 1.0
+
+
+def run_variant(params, pairs, splits, direction, overrides, seed, iterations, threads, root, context) -> dict:
+    settings = dict(model_settings(params), iterations=iterations)
+    run = dict(params["translation"], seed=seed, threads=threads, checkpoint_every=10**9, resume=False)
+    run["class_gan"] = dict(run["class_gan"])
+    for key, value in overrides.items():
+        if key.startswith("class_gan."):
+            run["class_gan"][key.split(".", 1)[1]] = value
+        elif key == "conditioning":
+            run["conditioning"] = dict(run["conditioning"], **{direction: value})
+        elif key in run:
+            run[key] = value
+        else:
+            settings[key] = value
+    size = settings["size"]
+    train = load_pair_data(pairs, splits, direction, "all", size, root)
+    objective, _ = resolve_objective(run["objective"], train)
+    settings = objective_settings(settings, run, objective)
+    conditioning = build_conditioning(run["conditioning"][direction], pairs, "all", train)
+    started = time.perf_counter()
+    result = train_translator(train, settings, run, direction, "all", progress=False, conditioning=conditioning)
+    seconds = time.perf_counter() - started
+    inputs, input_classes = context["test_inputs"], context["test_input_classes"]
+    labels = conditioning.labels(list(input_classes)) if conditioning.kind != "none" else None
+    generated = translate(result.generator.eval(), inputs, conditioning=conditioning, labels=labels)
+    return {"objective": objective, "seconds": seconds, **goal_numbers(generated, input_classes, context)}
+
+
+def goal_numbers(generated: torch.Tensor, classes: np.ndarray, context: dict) -> dict:
+    encoder, side = context["encoder"], context["side"]
+    features = image_features(encoder, resized(generated, side))
+    real_train, real_test = context["train_features"], context["test_features"]
+    index = {c: i for i, c in enumerate(context["classes"])}
+    correct = predict(context["model"], resized(generated, side)).numpy() == np.array([index[c] for c in classes])
+    view_features = lambda images: (image_features(encoder, resized(images, side)), 2.0)  # noqa: E731
+    out = {
+        "n": len(generated),
+        "diversity_pixels": diversity_ratio(generated, context["test_targets"], classes,
+                                            context["test_target_classes"], grey_pixels),
+        "diversity_features": diversity_ratio(generated, context["test_targets"], classes,
+                                              context["test_target_classes"], view_features),
+        "prdc": prdc_scores(real_train, features),
+        "fid": fid(real_train, features),
+        "kid": kid(real_train, features),
+        "gan_test": float(correct.mean()),
+        "memorisation": memorisation(features, real_train, real_test).rate,
+    }
+    return out
+
+
+def prepare_context(params, pairs, splits, direction, root) -> dict:
+    source, target = DIRECTIONS[direction]
+    classes = sorted(set(pairs["class"]))
+    model, real_acc, real_n = real_classifier(splits, target, params, root, classes)
+    _, input_acc, input_n = real_classifier(splits, source, params, root, classes)
+    side = params["classify"]["size"]
+    size = model_settings(params)["size"]
+
+    def tiles(split, modality):
+        rows = splits[(splits["split"] == split) & (splits["modality"] == modality)].sort_values("path")
+        return read_tiles(list(rows["path"]), size, root), rows["class"].to_numpy()
+
+    train_targets, _ = tiles("train", target)
+    test_targets, test_target_classes = tiles("test", target)
+    test_inputs, test_input_classes = tiles("test", source)
+    encoder = classifier_encoder(model)
+    context = {"model": model, "encoder": encoder, "side": side, "classes": classes,
+               "real_accuracy": (real_acc, real_n), "input_accuracy": (input_acc, input_n),
+               "train_targets": train_targets, "test_targets": test_targets,
+               "test_target_classes": test_target_classes, "test_inputs": test_inputs,
+               "test_input_classes": test_input_classes,
+               "train_features": image_features(encoder, resized(train_targets, side)),
+               "test_features": image_features(encoder, resized(test_targets, side))}
+    references = {"real held-out": (test_targets, test_target_classes),
+                  "flat mean colour": (flat_colour_set(train_targets, len(test_inputs)), test_input_classes),
+                  "mean image": (mean_image_set(train_targets, len(test_inputs)), test_input_classes)}
+    context["references"] = {name: goal_numbers(images, cls, context) for name, (images, cls) in references.items()}
+    return context
+
+
+def row(name: str, seed, r: dict) -> str:
+    def ci(t):
+        return f"{t[0]:.2f} [{t[1]:.2f}, {t[2]:.2f}]"
+    low, high = wilson_interval(r["gan_test"], r["n"])
+    k = r["kid"]
+    return (f"| {name} | {seed} | {r['n']} | {ci(r['diversity_pixels'])} | {ci(r['diversity_features'])} | "
+            f"{r['prdc']['recall']:.2f} / {r['prdc']['coverage']:.2f} | {r['fid']:.1f} | "
+            f"{k[0]:.4f} ± {1.96 * k[1]:.4f} | {r['gan_test']:.3f} [{low:.3f}, {high:.3f}] | "
+            f"{r['memorisation']:.3f} | {r.get('seconds', 0):.0f} |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--run", default=".", help="a run folder holding params.yaml and data/pairs")
+    parser.add_argument("--direction", choices=list(DIRECTIONS), default="v2t")
+    parser.add_argument("--variant", action="append", required=True, help="name:key=value;key=value")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--iterations", type=int, default=1500)
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+    root = Path(args.run).resolve()
+    params = validate_params(yaml.safe_load((root / "params.yaml").read_text()))
+    torch.set_num_threads(args.threads)
+    pairs = read_table(root / "data" / "pairs" / f"{args.direction}.parquet", PAIR_COLUMNS, "pairs")
+    splits = read_table(root / "data" / "pairs" / "splits.parquet", SPLIT_COLUMNS, "splits")
+    context = prepare_context(params, pairs, splits, args.direction, root)
+    (acc, n), (in_acc, in_n) = context["real_accuracy"], context["input_accuracy"]
+    print(f"# {root} {args.direction}, {args.iterations} iterations; real-only accuracy: target {acc:.3f} (n = {n}), "
+          f"input {in_acc:.3f} (n = {in_n}); GAN-test goal >= {0.8 * min(acc, in_acc):.3f}", flush=True)
+    header = ("| variant | seed | n | diversity pixels [95%] | diversity features [95%] | recall / coverage | FID | "
+              "KID ± 95% | GAN-test [95%] | memorisation | train s |\n|---|---|---|---|---|---|---|---|---|---|---|")
+    lines = [row(name, "-", r) for name, r in context["references"].items()]
+    for text in args.variant:
+        name, overrides = parse_variant(text)
+        for seed in args.seeds:
+            result = run_variant(params, pairs, splits, args.direction, overrides, seed, args.iterations,
+                                 args.threads, root, context)
+            lines.append(row(f"{name} ({result['objective']})", seed, result))
+            print(lines[-1], flush=True)
+    print("\n" + header + "\n" + "\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,152 @@
+"""The class-paired objective (issue 24): its pieces on known inputs, its step, and the choice of objective."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from vtgen.core.augment import cutout, diff_augment, translation
+from vtgen.core.models import ProjectionDiscriminator
+from vtgen.core.translator import mode_seeking_loss, r1_penalty, TranslatorTraining
+from vtgen.stages.train import _draw, objective_settings, PairData, resolve_objective
+
+SETTINGS = {"size": 32, "ngf": 8, "ndf": 8, "kernel": 4, "discriminator": "patch", "patch_layers": 2,
+            "gan_loss": "bce", "l1_weight": 100.0, "optimizer": "adam", "lr": 2e-4, "betas": [0.5, 0.999],
+            "batch_size": 4, "iterations": 4, "noise": False}
+CLASS_GAN = {"objective": "class_gan", "r1": 1.0, "diffaugment": True, "mode_seeking": 1.0}
+
+
+def test_translation_moves_the_image_by_whole_pixels_and_fills_zeros():
+    image = torch.arange(1, 65, dtype=torch.float32).reshape(1, 1, 8, 8)
+    torch.manual_seed(3)
+    shifted = translation(image, fraction=1 / 4)
+    # every row of the result is a row of the input moved sideways, or zeros: find the shift and check it all
+    nonzero = shifted[0, 0][shifted[0, 0] != 0]
+    assert len(nonzero) > 0 and set(nonzero.tolist()) <= set(image.flatten().tolist())
+    first = shifted[0, 0].nonzero()[0]
+    source = (image[0, 0] == shifted[0, 0, first[0], first[1]]).nonzero()[0]
+    dy, dx = int(source[0] - first[0]), int(source[1] - first[1])
+    assert abs(dy) <= 2 and abs(dx) <= 2
+    for r in range(8):
+        for c in range(8):
+            inside = 0 <= r + dy < 8 and 0 <= c + dx < 8
+            assert shifted[0, 0, r, c] == (image[0, 0, r + dy, c + dx] if inside else 0)
+
+
+def test_cutout_zeroes_one_square_of_the_stated_side():
+    torch.manual_seed(0)
+    out = cutout(torch.ones(16, 1, 16, 16), fraction=0.5)
+    zeros = (out == 0).sum(dim=(1, 2, 3))
+    # a full 8 x 8 square, or the part of it inside the image when its centre lies near a border (the centre
+    # is drawn on [0, 16]: at least a 4 x 4 corner stays inside)
+    assert (zeros <= 64).all() and (zeros >= 16).all() and (zeros == 64).any()
+
+
+def test_diff_augment_keeps_shape_and_passes_gradients():
+    x = (torch.rand(4, 3, 16, 16) * 2 - 1).requires_grad_(True)
+    out = diff_augment(x)
+    assert out.shape == x.shape and out.dtype == x.dtype
+    out.sum().backward()
+    assert x.grad is not None and x.grad.abs().sum() > 0
+
+
+def test_projection_discriminator_judges_the_image_as_its_class():
+    torch.manual_seed(0)
+    d = ProjectionDiscriminator(num_classes=3, ndf=8, layers=2)
+    x = torch.rand(2, 3, 32, 32) * 2 - 1
+    a, b = d(x, torch.tensor([0, 0])), d(x, torch.tensor([1, 1]))
+    assert a.shape == (2, 1, 7, 7)  # 32 -> 16 -> 8 by the strided convs, 7 by the k=4 stride-1 conv
+    assert not torch.allclose(a, b)  # the class enters through the projection
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in d.modules())  # per-image R1 gradients
+    # the projection is linear in the embedding: zero embeddings leave the unconditional logits
+    with torch.no_grad():
+        d.embedding.weight.zero_()
+    assert torch.equal(d(x, torch.tensor([0, 0])), d(x, torch.tensor([2, 1])))
+    with pytest.raises(ValueError, match="class indices"):
+        d(x, torch.tensor([0]))
+
+
+def test_mode_seeking_loss_on_known_inputs():
+    inputs = torch.zeros(4, 3, 2, 2)
+    inputs[1] = 0.5  # rows (0, 1) differ by 0.5 everywhere, rows (2, 3) by 0
+    outputs = torch.zeros(4, 3, 2, 2)
+    outputs[1] = 0.25  # outputs: (0, 1) differ by 0.25, (2, 3) by 0.75
+    outputs[3] = 0.75
+    # mean output gap (0.25 + 0.75) / 2 = 0.5 over mean input gap 0.25: ratio 2
+    assert float(mode_seeking_loss(outputs, inputs)) == pytest.approx(1 / (2 + 1e-5))
+    assert float(mode_seeking_loss(torch.zeros(4, 3, 2, 2), inputs)) == pytest.approx(1e5)  # collapse: 1/eps
+    with pytest.raises(ValueError, match="even"):
+        mode_seeking_loss(outputs[:3], inputs[:3])
+
+
+def test_r1_penalty_on_a_linear_discriminator():
+    real = torch.rand(2, 3, 4, 4).requires_grad_(True)
+    logits = (3.0 * real).sum(dim=(1, 2, 3))  # gradient 3 at every pixel
+    # (1/2)·E‖∇‖² = 0.5 · 9 · 48
+    assert float(r1_penalty(logits, real)) == pytest.approx(0.5 * 9 * 48)
+
+
+def batch(seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    x, y = torch.rand(4, 3, 32, 32, generator=g) * 2 - 1, torch.rand(4, 3, 32, 32, generator=g) * 2 - 1
+    return x, y, torch.tensor([0, 0, 1, 1])
+
+
+def weights(net):
+    return [p.detach().clone() for p in net.parameters()]
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_a_class_step_trains_both_networks_without_a_pixel_loss(precision):
+    torch.manual_seed(0)
+    training = TranslatorTraining(dict(SETTINGS, **CLASS_GAN), "cpu", precision, num_classes=2)
+    before_g, before_d = weights(training.generator), weights(training.discriminator)
+    losses = training.step(*batch())
+    assert all(torch.isfinite(v) and v.ndim == 0 for v in losses.values())
+    assert any(not torch.equal(a, b) for a, b in zip(before_g, weights(training.generator)))
+    assert any(not torch.equal(a, b) for a, b in zip(before_d, weights(training.discriminator)))
+    with pytest.raises(ValueError, match="class index"):
+        training.step(*batch()[:2])
+
+
+def test_the_l1_weight_does_not_act_on_class_pairs_and_each_term_acts_on_its_network():
+    def stepped(**overrides):
+        torch.manual_seed(0)
+        training = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, **overrides)), "cpu", num_classes=2)
+        training.step(*batch())
+        return weights(training.generator), weights(training.discriminator)
+
+    base_g, base_d = stepped()
+    same = lambda a, b: all(torch.equal(p, q) for p, q in zip(a, b))  # noqa: E731
+    g, d = stepped(l1_weight=0.0)
+    assert same(g, base_g) and same(d, base_d)  # no pixel loss to the random partner, whatever l1_weight says
+    g, d = stepped(mode_seeking=0.0)
+    assert same(d, base_d) and not same(g, base_g)  # the mode-seeking term is G's only
+    g, d = stepped(r1=0.0)
+    assert not same(d, base_d)  # R1 is D's
+
+
+def pair_data(fixed: bool) -> PairData:
+    images = torch.randint(0, 256, (6, 3, 8, 8), dtype=torch.uint8)
+    classes = ["a", "a", "a", "b", "b", "c"]
+    return PairData(images, images.clone(), classes, torch.full((6,), fixed), images.clone(),
+                    {c: torch.tensor([i for i, k in enumerate(classes) if k == c]) for c in "abc"},
+                    fixed=torch.full((6,), fixed))
+
+
+def test_auto_picks_the_objective_from_the_pair_kind():
+    assert resolve_objective("auto", pair_data(fixed=False))[0] == "class_gan"
+    assert resolve_objective("auto", pair_data(fixed=True))[0] == "pix2pix"
+    assert resolve_objective("pix2pix", pair_data(fixed=False)) == ("pix2pix", "as set")
+    translation = {"preset": "fast", "class_gan": {"r1": 1.0, "diffaugment": True, "mode_seeking": 1.0}}
+    assert objective_settings(SETTINGS, translation, "pix2pix") is SETTINGS  # pix2pix: the preset, untouched
+    assert objective_settings(SETTINGS, translation, "class_gan") == dict(SETTINGS, **CLASS_GAN)
+    with pytest.raises(ValueError, match="presets.fast.batch_size"):
+        objective_settings(dict(SETTINGS, batch_size=3), translation, "class_gan")
+
+
+def test_class_batches_pair_rows_of_one_class():
+    data = pair_data(fixed=False)
+    for seed in range(20):
+        _, _, index = _draw(data, 8, torch.Generator().manual_seed(seed), class_row_pairs=True)
+        assert all(data.classes[index[k]] == data.classes[index[k + 1]] for k in range(0, 8, 2))
