@@ -230,6 +230,17 @@ PIPELINE_COMMANDS = {"render", "ingest", "roi", "pairs", "train", "generate", "s
                      "frontier", "stability", "studies-report"}
 
 
+def peak_memory() -> dict:
+    """Peak resident memory in MB of this process (``peak_rss_mb``) and of the largest child process it waited for
+    (``peak_rss_children_mb``, the stage's worker processes; 0 without any), from getrusage. Linux reports KiB."""
+    import resource
+
+    def mb(who: int) -> float:
+        return round(resource.getrusage(who).ru_maxrss / 1024, 1)
+
+    return {"peak_rss_mb": mb(resource.RUSAGE_SELF), "peak_rss_children_mb": mb(resource.RUSAGE_CHILDREN)}
+
+
 def debugging() -> bool:
     """VTGEN_DEBUG=1 (or true, yes, on) shows tracebacks; unset, empty, 0, false, no or off do not."""
     return os.environ.get("VTGEN_DEBUG", "").strip().lower() in ("1", "true", "yes", "on")
@@ -245,7 +256,7 @@ def run_stage(args, params) -> None:
     out = Path(args.out)
     if out.is_dir() and args.stage not in ("report", "studies-report"):  # pages: reports/ holds declared files only
         record = {"stage": args.stage, "seconds": round(time.perf_counter() - started, 2),
-                  "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
+                  "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), **peak_memory()}
         (out / "timing.json").write_text(json.dumps(record) + "\n")
 
 
