@@ -275,7 +275,10 @@ def test_stage_writes_tables_summary_and_plot(tmp_path, monkeypatch):
     out = tmp_path / "out/tactile"
     table = pd.read_parquet(out / "accuracy.parquet")
     assert list(table.columns) == list(ACCURACY_COLUMNS)
-    assert len(table) == len(SETTINGS) * 2 * 2 and len(pd.read_csv(out / "accuracy.csv")) == len(table)
+    confident = "real+generated (confident, ratio 0.5)"  # the policy's second default candidate; the first is real+generated
+    assert set(table["setting"]) == set(SETTINGS) | {confident}
+    assert len(table) == (len(SETTINGS) + 1) * 2 * 2 and len(pd.read_csv(out / "accuracy.csv")) == len(table)
+    assert table["val_accuracy"].between(0, 1).all()  # one validation image per class
     assert sorted(table["epoch"].unique()) == [1, 2] and (table["modality"] == "tactile").all()
     counts = table.groupby("setting")[["train_images", "real_images", "generated_images"]].first()
     assert counts.loc["real"].tolist() == [18, 18, 0]
@@ -287,12 +290,16 @@ def test_stage_writes_tables_summary_and_plot(tmp_path, monkeypatch):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "ok" and summary["classes"] == list(CLASSES) and summary["direction"] == "v2t"
     assert summary["counts"]["generated_test"] == 6 and summary["counts"]["low_data_real_train"] == {"0": 6, "1": 6}
-    assert set(summary["settings"]) == set(SETTINGS) and len(summary["settings"]["real"]["epoch_mean"]) == 2
+    assert set(summary["settings"]) == set(SETTINGS) | {confident} and len(summary["settings"]["real"]["epoch_mean"]) == 2
+    policy = summary["policy"]
+    assert policy["val_images"] == 3 and [c["setting"] for c in policy["candidates"]] == ["real+generated", confident]
+    assert policy["test"]["setting"] == policy["chosen"] and policy["test"]["images"] == 6
+    assert policy["test"]["accuracy"] == summary["settings"][policy["chosen"]]["final_mean"]
     assert 0 <= summary["gan_test"]["final_mean"] <= 1
     assert (out / "curves.png").stat().st_size > 0
     # n and a 95% Wilson interval per class and setting; comparisons are ranked only outside the noise
     by_class = pd.read_csv(out / "by_class.csv", keep_default_na=False)
-    assert set(by_class["setting"]) == set(SETTINGS) | {"GAN-test"}
+    assert set(by_class["setting"]) == set(SETTINGS) | {confident, "GAN-test"}
     assert (by_class.loc[by_class["class"] != "(all)", "images"] == 2).all()  # 2 test images per class
     assert (by_class.loc[by_class["class"] == "(all)", "images"] == 6).all()
     assert ((by_class["low"] <= by_class["accuracy"]) & (by_class["accuracy"] <= by_class["high"])).all()
@@ -305,8 +312,10 @@ def test_stage_writes_tables_summary_and_plot(tmp_path, monkeypatch):
     assert summary["test_images_per_class"] == {c: 2 for c in CLASSES}
     # images per second: every image visit of every setting, seed and epoch, and every image evaluated
     speed = summary["throughput"]
-    assert speed["train_images"] == 2 * 2 * (18 + 27 + 6 + 15)  # seeds x epochs x the settings' training images
-    assert speed["eval_images"] == 2 * 2 * (4 * 6 + 6)  # seeds x epochs x (test set per setting + GAN-test)
+    visits = table.groupby(["setting", "seed"])["train_images"].first().sum()  # the confident candidate's set is drawn
+    assert speed["train_images"] == 2 * visits  # epochs x the settings' and seeds' training images
+    runs = table.groupby(["setting", "seed"]).ngroup().nunique() - (table["seconds"] == 0).sum() // 2  # reused: not run
+    assert speed["eval_images"] == 2 * (runs * (6 + 3) + 2 * 6)  # epochs x (test + validation per run, GAN-test)
     for kind in ("train", "eval"):
         assert speed[f"{kind}_seconds"] > 0
         assert speed[f"{kind}_images_per_second"] == pytest.approx(speed[f"{kind}_images"] / speed[f"{kind}_seconds"],
@@ -402,7 +411,8 @@ def test_stage_on_separable_data_is_not_flagged(tmp_path, monkeypatch, capsys):
     assert table["at_chance"].dtype == bool
     summary = json.loads((tmp_path / "out/visual/summary.json").read_text())
     assert summary["chance"] == pytest.approx(1 / 3)
-    assert {name: s["at_chance"] for name, s in summary["settings"].items()} == dict.fromkeys(SETTINGS, False)
+    assert set(SETTINGS) <= set(summary["settings"])  # and the policy's candidates
+    assert not any(s["at_chance"] for s in summary["settings"].values())
     assert summary["gan_test"]["at_chance"] is False and summary["gan_test"]["images"] == 18
     assert "chance level" not in printed.out + printed.err
 
@@ -484,3 +494,165 @@ def test_wilson_interval_always_holds_the_observed_share():
             assert 0.0 <= low <= accuracy <= high <= 1.0
     assert wilson_interval(1.0, 144)[1] == 1.0 and wilson_interval(0.0, 144)[0] == 0.0
     assert wilson_interval(0.5, 0) == (0.0, 1.0)
+
+
+# ---------------------------------------------------------------- the policy: which generated images the default adds
+
+
+def noise_layout(root, train=6, val=3, test=4, noise_per_input=4, spread=30):
+    """Real tactile and visual tiles of three colour classes with pixel noise (learnt within a few epochs), and
+    generated training images that are PURE NOISE (uniform random pixels, labelled with their input's class),
+    ``noise_per_input`` per real training input, so that they outnumber the real training images."""
+    rng = np.random.default_rng(1)
+    rows, generated = [], []
+    centre = {"denim": (90, 110, 160), "felt": (160, 90, 90), "satin": (120, 160, 110)}
+
+    def tile(path, cls=None):
+        pixels = (rng.integers(0, 256, (32, 32, 3)) if cls is None
+                  else np.clip(np.array(centre[cls]) + rng.normal(0, spread, (32, 32, 3)), 0, 255))
+        write_image(root / path, pixels.astype(np.uint8))
+        return path
+
+    for cls in CLASSES:
+        for modality in ("visual", "tactile"):
+            for split, count in (("train", train), ("val", val), ("test", test)):
+                for i in range(count):
+                    rows.append(dict(path=tile(f"data/roi/{modality}/{cls}/{split}{i}.png", cls), **{"class": cls},
+                                     modality=modality, source=f"{cls}-{split}{i}", group=f"{cls}-{split}{i}",
+                                     split=split))
+    splits = pd.DataFrame(rows)
+    (root / "data/pairs").mkdir(parents=True)
+    splits.to_parquet(root / "data/pairs/splits.parquet")
+    for direction, source in (("v2t", "visual"), ("t2v", "tactile")):
+        generated = []
+        for row in splits[(splits["modality"] == source) & (splits["split"] == "train")].itertuples():
+            for k in range(noise_per_input):
+                out = tile(f"data/generated/{direction}/{row.source}_{k}.png")
+                generated.append(dict(direction=direction, scope="all", split="train", **{"class": row[2]},
+                                      input_path=row.path, output_path=out, ground_truth_path=None, model="noise"))
+        pd.DataFrame(generated).to_parquet(root / f"data/generated/{direction}/generated.parquet")
+    return splits
+
+
+@pytest.mark.slow
+def test_policy_adds_no_pure_noise_and_reports_the_real_only_accuracy(tmp_path, monkeypatch):
+    """Generated images that are pure noise: the policy keeps real only, and the accuracy it reports is the
+    real-only one. The noise does lower the accuracy of a classifier that adds it (checked below), so a
+    policy that added it, or a report that read another setting, would fail here."""
+    monkeypatch.chdir(tmp_path)
+    noise_layout(tmp_path)
+    params = classify_params(epochs=4, seeds=[0, 1], patience=0,
+                             policy={"mode": "auto", "confidence": 0.5,
+                                     "candidates": [{"ratio": 4.0, "filter": "all"}, {"ratio": 0.5, "filter": "confident"}]})
+    summary = run_classify(params, "tactile", "data/pairs", "data/generated", "out/tactile", progress=False)
+    policy, settings = summary["policy"], summary["settings"]
+    assert policy["chosen"] == "real" and policy["uses_generated"] is False
+    assert "no candidate beat real only" in policy["reason"]
+    assert policy["test"]["accuracy"] == settings["real"]["final_mean"] == policy["test"]["real_accuracy"]
+    assert policy["test"]["interval"] == settings["real"]["interval"] and policy["test"]["gain"] == 0
+    # the candidates were real: four noise images per real one were added, and they cost accuracy
+    candidates = {c["setting"]: c for c in policy["candidates"]}
+    assert candidates["real+generated"]["generated_images"] == [72, 72]
+    assert candidates["real+generated"]["val_gain"] < 0
+    assert settings["real+generated"]["final_mean"] < settings["real"]["final_mean"]
+    metrics_policy = json.loads((tmp_path / "out/tactile/summary.json").read_text())["policy"]
+    assert metrics_policy["chosen"] == "real"
+
+
+@pytest.mark.slow
+def test_policy_without_a_validation_split_is_real_only_and_says_why(tmp_path, monkeypatch):
+    """Too few groups for a validation split: no candidate is trained and the reason is recorded."""
+    monkeypatch.chdir(tmp_path)
+    noise_layout(tmp_path, val=0, noise_per_input=1)
+    summary = run_classify(classify_params(epochs=1, seeds=[0]), "visual", "data/pairs", "data/generated", "out/visual",
+                           progress=False)
+    policy = summary["policy"]
+    assert policy["chosen"] == "real" and policy["candidates"] == [] and policy["val_images"] == 0
+    assert "3 of 3 classes have no validation images" in policy["reason"] and "too few groups" in policy["reason"]
+    assert set(summary["settings"]) == set(SETTINGS)  # no candidate setting was trained
+    assert policy["test"]["accuracy"] == summary["settings"]["real"]["final_mean"]
+
+
+def test_paired_difference_counts_groups_not_images():
+    from vtgen.core.generated_policy import paired_difference
+
+    better = np.array([1, 1, 1, 1, 0, 0, 1, 1])
+    base = np.array([0, 0, 0, 0, 0, 0, 1, 1])
+    gain, low, high = paired_difference(better, base, np.arange(8))
+    assert gain == pytest.approx(0.5) and low < 0.5 < high
+    # one seed: the per-image part alone, sqrt(8/7 * sum((d - 0.5)^2)) / 8 with d four 1s and four 0s
+    assert (high - low) / 2 == pytest.approx(1.959964 * np.sqrt(8 / 7 * 8 * 0.25) / 8, rel=1e-5)
+    # the same images in two groups of four: half the units, a wider interval around the same gain
+    gain2, low2, high2 = paired_difference(better, base, np.repeat([0, 1], 4))
+    assert gain2 == pytest.approx(0.5) and high2 - low2 > high - low
+    assert paired_difference(base, base, np.arange(8)) == (0.0, 0.0, 0.0)
+    # seeds x images: the mean over seeds, and seeds that disagree widen the interval
+    two_seeds = paired_difference(np.stack([better, base]), np.stack([base, base]), np.arange(8))
+    agreeing = paired_difference(np.stack([better, better]), np.stack([base, base]), np.arange(8))
+    assert two_seeds[0] == pytest.approx(0.25) and agreeing[2] - agreeing[1] == pytest.approx(high - low)
+
+
+def test_choose_takes_a_candidate_only_beyond_its_interval():
+    from vtgen.core.generated_policy import choose
+
+    groups = np.arange(40)
+    real = np.tile(np.r_[np.ones(20), np.zeros(20)], (2, 1))
+    clearly = real.copy()
+    clearly[:, 20:36] = 1  # right on 16 of the 20 images real gets wrong, both seeds
+    slightly = real.copy()
+    slightly[:, 20:22] = 1  # 2 more right: within noise
+    result = choose({"real": real, "slight": slightly, "clear": clearly}, groups)
+    assert result["chosen"] == "clear" and "beat real only" in result["reason"]
+    rows = {r["setting"]: r for r in result["candidates"]}
+    assert rows["clear"]["val_gain"] == pytest.approx(0.4) and rows["clear"]["val_gain_interval"][0] > 0
+    assert rows["slight"]["val_gain_interval"][0] <= 0
+    assert choose({"real": real, "slight": slightly}, groups)["chosen"] == "real"
+
+
+def test_generated_subset_caps_per_class_and_filters_by_confidence():
+    from vtgen.core.generated_policy import generated_subset
+
+    labels = np.array([0, 0, 0, 0, 1, 1, 1, 1])
+    probability = np.array([0.9, 0.2, 0.7, 0.6, 0.1, 0.3, 0.95, 0.4])
+    assert generated_subset(labels, {0: 4, 1: 4}, 1.0, "all", 0).tolist() == list(range(8))
+    capped = generated_subset(labels, {0: 2, 1: 4}, 1.0, "all", 0)
+    assert sum(labels[capped] == 0) == 2 and sum(labels[capped] == 1) == 4
+    assert capped.tolist() == generated_subset(labels, {0: 2, 1: 4}, 1.0, "all", 0).tolist()  # seeded
+    # confident: own-class probability >= 0.5, most confident first, at most ratio x real per class
+    assert generated_subset(labels, {0: 4, 1: 4}, 1.0, "confident", 0, probability, 0.5).tolist() == [0, 2, 3, 6]
+    assert generated_subset(labels, {0: 2, 1: 2}, 0.5, "confident", 0, probability, 0.5).tolist() == [0, 6]
+    with pytest.raises(ValueError, match="unknown generated-image filter"):
+        generated_subset(labels, {0: 4}, 1.0, "best", 0)
+
+
+def test_early_stopping_ends_a_run_on_the_validation_accuracy():
+    from vtgen.core.classifier import EarlyStopping
+
+    stop = EarlyStopping(2)
+    assert [stop.should_stop(e, v) for e, v in enumerate([0.5, 0.6, 0.6, 0.55], start=1)] == [False, False, False, True]
+    assert stop.best_epoch == 2
+    assert not any(EarlyStopping(0).should_stop(e, 0.1) for e in range(1, 20))
+    # in training: the run ends one epoch (patience 1) after its last new best validation accuracy
+    train_x, train_y = stripes(6, seed=0)
+    test_x, test_y = stripes(2, seed=1)
+    run = train_classifier(train_x, train_y, test_x, test_y, 3, dict(TINY, epochs=6, patience=1), seed=0,
+                           val=(test_x[:1], test_y[:1]))
+    assert len(run.test_accuracy) == len(run.extra_accuracy["val"]) <= 6
+    accuracies = run.extra_accuracy["val"]
+    best = accuracies.index(max(accuracies)) + 1
+    assert len(accuracies) == min(6, best + 1)  # stopped one epoch after the last new best
+    assert len(train_classifier(train_x, train_y, test_x, test_y, 3, dict(TINY, epochs=3, patience=1), seed=0)
+               .test_accuracy) == 3  # without a validation set, every epoch runs
+
+
+def test_bf16_precision_trains_and_the_default_is_the_plain_fp32_step():
+    train_x, train_y = stripes(6, seed=0)
+    test_x, test_y = stripes(2, seed=1)
+    settings = dict(TINY, epochs=1)
+    fp32 = train_classifier(train_x, train_y, test_x, test_y, 3, settings, seed=0)
+    same = train_classifier(train_x, train_y, test_x, test_y, 3, settings, seed=0, precision="fp32")
+    bf16 = train_classifier(train_x, train_y, test_x, test_y, 3, settings, seed=0, precision="bf16")
+    assert fp32.train_loss == same.train_loss and np.isfinite(bf16.train_loss).all()
+    assert bf16.train_loss != fp32.train_loss  # the forward passes ran in bf16
+    with pytest.raises(ValueError, match="precision must be fp32 or bf16"):
+        train_classifier(train_x, train_y, test_x, test_y, 3, settings, seed=0, precision="fp16")

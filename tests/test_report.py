@@ -172,11 +172,29 @@ def fake_run(root, at_chance: bool | None = None, greyscale: bool = False, half_
             "counts": {"real_test": 4}, "notes": [], "test_images_per_class": {c: 2 for c in CLASSES},
             "gan_test": {"setting": "real", "final_mean": 0.5, "images": 4, "interval": [0.15, 0.85]},
             "comparisons": [{"setting": "real+generated", "against": "real", "difference": 0.1, "overlap": True,
-                             "verdict": "within noise (95% intervals overlap)"}]})
+                             "verdict": "within noise (95% intervals overlap)"}],
+            "policy": _policy(modality)})
         _accuracy(modality).to_parquet(folders["classify"] / modality / "accuracy.parquet")
         _classify_by_class(modality).to_parquet(folders["classify"] / modality / "by_class.parquet")
         _timing(folders["classify"] / modality, "classify", 3.0)
     return folders
+
+
+def _policy(modality: str) -> dict:
+    """summary.json's policy as the classify stage writes it: tactile chose real+generated on validation, visual
+    had no validation split and stayed real only."""
+    test = {"setting": "real", "accuracy": 0.71, "interval": [0.3, 0.95], "real_accuracy": 0.71,
+            "real_interval": [0.3, 0.95], "images": 4, "gain": 0.0, "gain_interval": [0.0, 0.0]}
+    if modality == "visual":
+        return {"mode": "auto", "val_images": 0, "val_groups": 0, "chosen": "real", "uses_generated": False,
+                "candidates": [], "test": test,
+                "reason": "2 of 2 classes have no validation images (denim, <b>): the data has too few groups"}
+    return {"mode": "auto", "val_images": 6, "val_groups": 6, "chosen": "real+generated", "uses_generated": True,
+            "reason": "'real+generated' beat real only on the validation split by +0.300 accuracy, beyond its interval",
+            "candidates": [{"setting": "real+generated", "val_accuracy": 0.9, "val_gain": 0.3,
+                            "val_gain_interval": [0.1, 0.5], "ratio": 1.0, "filter": "all", "generated_images": [4, 4]}],
+            "test": dict(test, setting="real+generated", accuracy=0.81, interval=[0.4, 0.97], gain=0.1,
+                         gain_interval=[-0.05, 0.25])}
 
 
 def _classify_by_class(modality: str) -> pd.DataFrame:
@@ -319,15 +337,16 @@ def test_paper_file_agrees_with_the_shared_transcription_number_for_number():
     assert mine["columns"] == theirs["columns"] and mine["rows"] == theirs["rows"]
 
 
-def test_page_helper_autoescapes_html_but_not_markdown():
+def test_page_helper_autoescapes_html_and_markdown_shows_tags_as_text():
     table = {"caption": "a | b", "columns": ["class", "x"], "rows": [["<b>", 0.12345], ["felt", None]]}
     chance = {"modality": "<m>", "at_chance": ["real"], "classes": 2, "tables": [], "status": "ok", "notes": []}
     context = {"title": "t", "synthetic": False} | _minimal_context(table) | {"classify": [chance]}
     page, summary = render_page("report", context)
     assert "<td>&lt;b&gt;</td><td>0.123</td>" in page and "<td>—</td>" in page
     assert "warning: the &lt;m&gt; classifier ends at chance level" in page and "<m>" not in page
-    assert "| class | x |" in summary and "| <b> | 0.123 |" in summary
-    assert '<li class="warning">WARNING: &lt;v&gt;</li>' in page and "- **WARNING: <v>**" in summary
+    # Markdown renders raw HTML, so names reach summary.md with < and > as entities (issue 25)
+    assert "| class | x |" in summary and "| &lt;b&gt; | 0.123 |" in summary and "<b>" not in summary
+    assert '<li class="warning">WARNING: &lt;v&gt;</li>' in page and "- **WARNING: &lt;v&gt;**" in summary
 
 
 def _minimal_context(table: dict) -> dict:
@@ -369,7 +388,11 @@ def test_metrics_json_holds_headline_numbers_and_is_byte_identical_across_runs(t
     assert flat(metrics["classify"]["tactile"]) == pytest.approx(
         {"real": 0.71, "real+generated": 0.81, "gan_test": 0.5, "gan_test_vs_real": 0.5 / 0.71, "seeds": 2,
          "real_test_images": 4,
-         "gain_from_generated.real+generated": 0.1})
+         "gain_from_generated.real+generated": 0.1,
+         # the policy's choice beside real only, so that dvc exp show reads both
+         "policy.accuracy": 0.81, "policy.real_only": 0.71, "policy.gain": 0.1, "policy.uses_generated": 1})
+    assert metrics["classify"]["visual"]["policy"] == {"accuracy": 0.71, "real_only": 0.71, "gain": 0.0,
+                                                       "uses_generated": 0}
     assert metrics["counts"] == {"classes": 2, "images_kept": 12, "quarantined": 1, "models": 2}
 
 
@@ -391,7 +414,7 @@ def test_report_opens_with_verdicts_and_warns_where_generated_data_fails(tmp_pat
     # the data facts: pair kinds per direction and split, the dropped pairs, per-class test n
     assert "- T2V pairs: train 8 (pixel 4, class 4), test 2 (pixel 1, class 1)" in summary
     assert "- WARNING (pairs): v2t: class denim: 2 name pairs promised by the layout were dropped" in summary
-    assert "- real tactile test images per class: <b> 2, denim 2" in summary
+    assert "- real tactile test images per class: &lt;b&gt; 2, denim 2" in summary
     assert "pairs are by class only" not in summary
     # distribution and memorisation tables with n, intervals and a reading that does not rank overlaps
     assert "| generated | 6 | 6 | 0.0500 [0.0450, 0.0550] | 5.00 | 0.550 [0.545, 0.555] |" in summary
@@ -401,6 +424,26 @@ def test_report_opens_with_verdicts_and_warns_where_generated_data_fails(tmp_pat
     assert "| ROI without noise | 0.91188 | — | — | not run by the main job (studies: roi_noise) |" in summary
     assert "| 10 |  |  |  | 0.9131 | 0.9058 |" in summary  # Table III tactile, the paper's 10th iteration
     assert "does not state how generated and real images were matched" in page
+
+
+def test_first_screen_answers_whether_generated_data_helps_before_the_long_lines(tmp_path):
+    """Before the verdict lines: per modality the policy chosen on validation with its test accuracy beside real
+    only's (intervals, the gain and why), then the verdicts as one direction x family grid coloured by status."""
+    out = tmp_path / "reports"
+    report(fake_run(tmp_path / "in"), out)
+    page, summary = (out / "index.html").read_text(), (out / "summary.md").read_text()
+    first, verdicts = summary.index("## Does generated data help here?"), summary.index("## Verdicts")
+    assert first < verdicts and page.index("Does generated data help here?") < page.index("<h2>Verdicts</h2>")
+    assert ("| tactile | chosen on validation; within noise on test (unresolved) | real+generated | 0.810 [0.400, 0.970] "
+            "| 0.710 [0.300, 0.950] | +0.100 [-0.050, +0.250] | 4 |") in summary
+    assert "| visual | no: real only (not scored) | real | 0.710 [0.300, 0.950] | 0.710 [0.300, 0.950] |" in summary
+    assert "too few groups" in summary[first:verdicts] and "&lt;b&gt;" in page[:page.index("<h2>Verdicts</h2>")]
+    # the grid: one row per direction, one column per family, each cell coloured by its status
+    assert "| direction | KID (classifier) | memorisation (classifier) |" in summary
+    assert "| V2T | ok (0.05) | — |" in summary and "| T2V | ok (0.05) | warning (0.5) |" in summary
+    grid = page[page.index("Verdicts: direction x metric family"):page.index("<h2>Verdicts</h2>")]
+    assert '<td class="ok">ok (0.05)</td>' in grid and '<td class="warning">warning (0.5)</td>' in grid
+    assert '<td class="not-scored">—</td>' in grid and "td.warning{background:#f8d7da" in page
 
 
 @pytest.mark.slow

@@ -262,6 +262,18 @@ def _predict_classes(model: AlexNet, images: torch.Tensor, scaled: bool, batch_s
     return torch.cat(labels) if labels else torch.empty(0, dtype=torch.long, device=images.device)
 
 
+@torch.inference_mode()
+def class_probabilities(model: AlexNet, images: torch.Tensor, batch_size: int = EVAL_BATCH) -> torch.Tensor:
+    """Softmax class probabilities (``N x classes``, float32 on the CPU) of uint8 ``images``, in eval mode."""
+    was_training = model.training
+    model.eval()
+    device = next(model.parameters()).device
+    parts = [torch.softmax(model(images[start:start + batch_size].to(device)).float(), dim=1).cpu()
+             for start in range(0, len(images), batch_size)]
+    model.train(was_training)
+    return torch.cat(parts) if parts else torch.empty(0, model.num_classes)
+
+
 def _check_set(name: str, images: torch.Tensor, labels: torch.Tensor, num_classes: int, size: int) -> None:
     if not isinstance(images, torch.Tensor) or images.dtype != torch.uint8 or images.ndim != 4 or images.shape[1] != 3:
         raise ValueError(f"{name}: expected uint8 images N x 3 x H x W, got "
@@ -309,110 +321,172 @@ def refresh_norm_statistics(model: AlexNet, images: torch.Tensor, batch_size: in
     model.train(was_training)
 
 
+class _TrainingImages:
+    """The training set as mini-batches are drawn from it (knows scaling and mirroring).
+
+    Each set is scaled once rather than per batch and epoch when the scaled images and their mirror
+    images fit PRESCALE_BYTES. Scaling and mirroring are exact, so a batch gathered from ``bank`` (the
+    scaled images, then their mirror images) equals, bit for bit, the batch mirrored and scaled on
+    the fly as the fallback does.
+    """
+
+    def __init__(self, images: torch.Tensor, labels: torch.Tensor, flip: bool, device: torch.device):
+        self.count, self.flip = len(images), flip
+        self.prescale = (2 if flip else 1) * images.numel() * 4 <= PRESCALE_BYTES
+        self.images, self.labels = images.to(device), labels.long().to(device)
+        self.bank = None
+        if self.prescale:
+            self.images = scale_images(self.images)
+            if flip:
+                self.bank = torch.cat([self.images, self.images.flip(-1)]).contiguous(memory_format=torch.channels_last)
+                self.images = self.bank[:self.count]  # a view: the unmirrored half, for the batch-norm refresh
+            else:
+                self.bank = self.images
+
+    def prepare(self, images: torch.Tensor, device: torch.device) -> torch.Tensor:
+        """An evaluation set in the form the model is run on here (scaled once when prescaling)."""
+        return scale_images(images.to(device)) if self.prescale else images.to(device)
+
+    def batch(self, order: torch.Tensor, mirrored: torch.Tensor, start: int, size: int) -> torch.Tensor:
+        """Scaled images ``order[start:start + size]``, each mirrored where ``mirrored`` (indexed by image) says."""
+        index = order[start:start + size]
+        if self.prescale:
+            # row of each image in ``bank``: that of its mirror image (count to 2 count - 1) where drawn mirrored
+            return self.bank[index + self.count * mirrored[index].long() if self.flip else index]
+        x = self.images[index]
+        if self.flip:
+            x = torch.where(mirrored[index].view(-1, 1, 1, 1), x.flip(-1), x)
+        return scale_images(x)
+
+
+def _autocast(device: torch.device, precision: str):
+    """bf16 autocast for ``precision`` bf16, else a no-op context (fp32)."""
+    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bf16")
+
+
+def _train_epoch(model: AlexNet, optimiser, data: _TrainingImages, sampler: torch.Generator, batch_size: int,
+                 precision: str) -> tuple[float, torch.Tensor]:
+    """One seeded shuffled pass over ``data`` in mini-batches; returns the mean loss and the order drawn."""
+    device = data.labels.device
+    order = torch.randperm(data.count, generator=sampler)
+    mirrored = torch.rand(data.count, generator=sampler) < 0.5
+    order, mirrored = order.to(device), mirrored.to(device)
+    total = torch.zeros((), device=device)
+    for start in range(0, data.count, batch_size):
+        with _autocast(device, precision):
+            logits = model.scaled_forward(data.batch(order, mirrored, start, batch_size))
+        loss = F.cross_entropy(logits.float(), data.labels[order[start:start + batch_size]])
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        optimiser.step()
+        total += loss.detach() * min(batch_size, data.count - start)
+    return float(total) / data.count, order
+
+
+class EarlyStopping:
+    """Stop after ``patience`` epochs without a new best validation accuracy (0: never stop early).
+
+    The model kept is the last epoch's (no rollback), so the accuracy table's last row per run stays
+    the run's final accuracy."""
+
+    def __init__(self, patience: int):
+        self.patience, self.best, self.best_epoch = patience, -math.inf, 0
+
+    def should_stop(self, epoch: int, val_accuracy: float) -> bool:
+        """Record ``val_accuracy`` of ``epoch``; True when training should end after it."""
+        if not self.patience or not math.isfinite(val_accuracy):
+            return False
+        if val_accuracy > self.best:
+            self.best, self.best_epoch = val_accuracy, epoch
+        return epoch - self.best_epoch >= self.patience
+
+
 def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch.Tensor, test_y: torch.Tensor,
                      num_classes: int, settings: Mapping, seed: int, device: str | torch.device = "cpu",
                      extra_eval: Mapping[str, tuple[torch.Tensor, torch.Tensor]] | None = None,
                      weights: Mapping | None = None, retrain_layers: int = 2, weights_source: str = "weights",
-                     progress: Callable[[int, dict], None] | None = None) -> ClassifierRun:
-    """Train :func:`make_classifier` (``settings``: size, width, epochs, batch_size, lr; optional flip, default True).
+                     progress: Callable[[int, dict], None] | None = None,
+                     val: tuple[torch.Tensor, torch.Tensor] | None = None, precision: str = "fp32") -> ClassifierRun:
+    """Train :func:`make_classifier` (``settings``: size, width, epochs, batch_size, lr; optional flip, default
+    True, and patience, default 0).
 
     Images are uint8 ``N x 3 x size x size``, labels integers in ``[0, num_classes)``. Each epoch
     visits the training set once in a seeded shuffled order, in mini-batches (the last one may be
     smaller), with Adam at ``lr`` on cross-entropy; with ``flip`` each image is mirrored left-right
     with probability 1/2. After every epoch the model is evaluated (eval mode, no grad) on the
-    test set and on each ``extra_eval`` set, and ``progress(epoch, row)`` is called. Everything
-    random derives from ``seed`` (the caller's global RNG state is left untouched), so on CPU the
-    same seed gives identical accuracies. ``weights`` (a state_dict read from ``weights_source``) is applied with :func:`apply_weights`.
-    A non-finite mean training loss in an epoch raises :class:`TrainingDiverged` at the end of that epoch.
-    The run keeps the final epoch's predicted classes and where its time went (``train_seconds`` for
+    test set, on each ``extra_eval`` set and on ``val``, and ``progress(epoch, row)`` is called.
+    With a non-empty ``val`` and ``patience`` > 0, training ends once ``patience`` epochs passed
+    without a new best validation accuracy (:class:`EarlyStopping`); otherwise it runs ``epochs``.
+    ``precision`` bf16 runs forward passes under bf16 autocast (fp32: none). Everything random derives
+    from ``seed`` (the caller's global RNG state is left untouched), so on CPU the same seed gives
+    identical accuracies. ``weights`` (a state_dict read from ``weights_source``) is applied with
+    :func:`apply_weights`. A non-finite mean training loss in an epoch raises :class:`TrainingDiverged`
+    at the end of that epoch. The run keeps the final epoch's predicted classes (the validation set's
+    under the name ``"val"`` in ``extra_predictions``) and where its time went (``train_seconds`` for
     ``train_images`` image visits, ``eval_seconds`` for ``eval_images`` classified, ``norm_seconds``).
     """
     if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 2:
         raise ValueError(f"classification needs at least 2 classes, got {num_classes!r}")
     if len(train_x) == 0:
         raise ValueError("the training set is empty")
+    if precision not in ("fp32", "bf16"):
+        raise ValueError(f"precision must be fp32 or bf16, got {precision!r}")
     size, epochs, batch_size = settings["size"], settings["epochs"], settings["batch_size"]
     _check_set("training set", train_x, train_y, num_classes, size)
     _check_set("test set", test_x, test_y, num_classes, size)
     extra_eval = dict(extra_eval or {})
+    if val is not None and len(val[0]):
+        if "val" in extra_eval:
+            raise ValueError("extra_eval may not name a set 'val' when a validation set is given")
+        extra_eval["val"] = val
     for name, (x, y) in extra_eval.items():
         _check_set(f"evaluation set {name!r}", x, y, num_classes, size)
     device = torch.device(device)
-    flip = bool(settings.get("flip", True))
 
     model = make_classifier(num_classes, settings, seed)
     loaded = apply_weights(model, weights, retrain_layers, weights_source) if weights is not None else None
     model.to(device)
     optimiser = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=settings["lr"])
     started = time.perf_counter()
-    # Each set is scaled once here rather than per batch and epoch (when the scaled training images and
-    # their mirror images fit PRESCALE_BYTES). Scaling and mirroring are exact, so a batch gathered from
-    # ``bank`` (the scaled images, then their mirror images) equals, bit for bit, the batch mirrored and
-    # scaled on the fly as the fallback below does.
-    count = len(train_x)
-    prescale = (2 if flip else 1) * train_x.numel() * 4 <= PRESCALE_BYTES
-    images, labels = train_x.to(device), train_y.long().to(device)
-    if prescale:
-        images = scale_images(images)
-        if flip:
-            bank = torch.cat([images, images.flip(-1)]).contiguous(memory_format=torch.channels_last)
-            images = bank[:count]  # a view: the unmirrored half, for the batch-norm refresh
-        else:
-            bank = images
-    evaluated = {name: (scale_images(x.to(device)) if prescale else x.to(device), y.long().to(device))
+    data = _TrainingImages(train_x, train_y, bool(settings.get("flip", True)), device)
+    evaluated = {name: (data.prepare(x, device), y.long().to(device))
                  for name, (x, y) in {_TEST: (test_x, test_y), **extra_eval}.items()}
+    stopper = EarlyStopping(int(settings.get("patience", 0)) if "val" in extra_eval else 0)
     sampler = torch.Generator().manual_seed(seed)
-    test_accuracy, train_loss = [], []
-    extra_accuracy: dict[str, list[float]] = {name: [] for name in extra_eval}
+    run = ClassifierRun([], {name: [] for name in extra_eval}, [], 0.0, model, loaded)
     predictions: dict = {}
-    train_seconds = norm_seconds = eval_seconds = 0.0
     with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
         torch.manual_seed(seed)  # dropout draws from the global generator
         for epoch in range(1, epochs + 1):
             epoch_started = time.perf_counter()
             model.train()
             _hold_frozen_norms(model)
-            order = torch.randperm(count, generator=sampler)
-            mirrored = torch.rand(count, generator=sampler) < 0.5
-            order, mirrored = order.to(device), mirrored.to(device)
-            # row of each image in ``bank``: that of its mirror image (count to 2 count - 1) where drawn mirrored
-            rows = order + count * mirrored[order].long() if prescale and flip else order
-            total = torch.zeros((), device=device)
-            for start in range(0, count, batch_size):
-                if prescale:
-                    x = bank[rows[start:start + batch_size]]
-                else:
-                    index = order[start:start + batch_size]
-                    x = images[index]
-                    if flip:
-                        x = torch.where(mirrored[index].view(-1, 1, 1, 1), x.flip(-1), x)
-                    x = scale_images(x)
-                loss = F.cross_entropy(model.scaled_forward(x), labels[order[start:start + batch_size]])
-                optimiser.zero_grad(set_to_none=True)
-                loss.backward()
-                optimiser.step()
-                total += loss.detach() * min(batch_size, count - start)
-            mean_loss = float(total) / count
+            mean_loss, order = _train_epoch(model, optimiser, data, sampler, batch_size, precision)
             if not math.isfinite(mean_loss):
                 raise TrainingDiverged(epoch, seed, mean_loss)
-            train_loss.append(mean_loss)
+            run.train_loss.append(mean_loss)
+            run.train_images += data.count
             norm_started = time.perf_counter()
-            refresh_norm_statistics(model, images[order[:NORM_IMAGES]], scaled=prescale)
+            with _autocast(device, precision):
+                refresh_norm_statistics(model, data.images[order[:NORM_IMAGES]], scaled=data.prescale)
             eval_started = time.perf_counter()
             for name, (x, y) in evaluated.items():
-                predictions[name] = _predict_classes(model, x, scaled=prescale)
+                with _autocast(device, precision):
+                    predictions[name] = _predict_classes(model, x, scaled=data.prescale)
                 share = int((predictions[name] == y).sum()) / len(y) if len(y) else math.nan
-                (test_accuracy if name is _TEST else extra_accuracy[name]).append(share)
+                (run.test_accuracy if name is _TEST else run.extra_accuracy[name]).append(share)
+                run.eval_images += len(y)
             done = time.perf_counter()
-            train_seconds += norm_started - epoch_started
-            norm_seconds += eval_started - norm_started
-            eval_seconds += done - eval_started
+            run.train_seconds += norm_started - epoch_started
+            run.norm_seconds += eval_started - norm_started
+            run.eval_seconds += done - eval_started
             if progress:
-                progress(epoch, {"train_loss": mean_loss, "test_accuracy": test_accuracy[-1],
-                                 **{name: values[-1] for name, values in extra_accuracy.items()}})
+                progress(epoch, {"train_loss": mean_loss, "test_accuracy": run.test_accuracy[-1],
+                                 **{name: values[-1] for name, values in run.extra_accuracy.items()}})
+            if stopper.should_stop(epoch, run.extra_accuracy["val"][-1] if "val" in extra_eval else math.nan):
+                break
     model.eval()
-    return ClassifierRun(test_accuracy, extra_accuracy, train_loss, time.perf_counter() - started, model.cpu(), loaded,
-                         test_predictions=predictions[_TEST].cpu() if predictions else None,
-                         extra_predictions={name: predictions[name].cpu() for name in extra_eval if predictions},
-                         train_seconds=train_seconds, train_images=count * epochs, norm_seconds=norm_seconds,
-                         eval_seconds=eval_seconds, eval_images=epochs * sum(len(y) for _, y in evaluated.values()))
+    run.model, run.seconds = model.cpu(), time.perf_counter() - started
+    run.test_predictions = predictions[_TEST].cpu() if predictions else None
+    run.extra_predictions = {name: predictions[name].cpu() for name in extra_eval if predictions}
+    return run

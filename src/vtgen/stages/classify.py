@@ -15,7 +15,17 @@ enter training; the rows generated from test inputs form the GAN-test set, score
 epoch by the ``real`` classifiers (a real-only classifier applied to generated images). A
 generated training row whose input is not a training tile is refused as a split leak. Without
 generated training images the two ``+generated`` settings are skipped (noted in summary.json).
-Test images always are the real test-split tiles; the validation split is not used.
+Test images always are the real test-split tiles.
+
+The real validation-split tiles choose the *policy* (:mod:`vtgen.core.generated_policy`): which
+generated images, if any, the default classifier adds. Each ``classify.policy.candidates`` entry
+is one more setting (``real+generated`` itself where it keeps every generated image), trained
+per seed; the candidate that beats ``real`` on the validation images beyond the 95% interval is
+chosen, else real only. summary.json's ``policy`` records the choice, why, and its test accuracy
+beside real only. Without validation images for every class (too few groups), or with
+``mode: real``, no candidate is trained and the policy is real only, with the reason. With
+``classify.patience`` > 0 every run stops early on the validation accuracy; ``classify.precision``
+follows the same ``auto`` rule as training (bf16 only where the hardware computes it natively).
 
 A classifier that learnt nothing is flagged, not hidden: an accuracy is *at chance* when chance,
 1 / number of classes, lies inside the 95% Wilson score interval of that accuracy over the number
@@ -39,7 +49,8 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from vtgen.core.classifier import TrainingDiverged, at_chance, train_classifier, wilson_interval
+from vtgen.core import generated_policy
+from vtgen.core.classifier import TrainingDiverged, at_chance, class_probabilities, train_classifier, wilson_interval
 from vtgen.io.checkpoints import read_state_dict
 from vtgen.io.classifiers import save_classifier
 from vtgen.io.tables import GENERATED_COLUMNS
@@ -48,12 +59,12 @@ from vtgen.io.tables import read_table
 from vtgen.core.domain import direction_producing, DIRECTIONS
 from vtgen.io.tables import SPLIT_COLUMNS
 from vtgen.io.images import read_tiles
-from vtgen.core.device import resolve_device
+from vtgen.core.device import resolve_device, resolve_precision
 
 SETTINGS = ("real", "real+generated", "low-data real", "low-data real+generated")
 ACCURACY_COLUMNS = {
     "modality": "object", "setting": "object", "seed": "int64", "epoch": "int64", "test_accuracy": "float64",
-    "at_chance": "bool", "gan_test_accuracy": "float64", "train_images": "int64", "real_images": "int64", "generated_images": "int64",
+    "at_chance": "bool", "gan_test_accuracy": "float64", "val_accuracy": "float64", "train_images": "int64", "real_images": "int64", "generated_images": "int64",
     "seconds": "float64",
 }
 BY_CLASS_COLUMNS = ["modality", "setting", "class", "images", "accuracy", "low", "high", "seeds"]
@@ -111,16 +122,18 @@ def summarise(table: pd.DataFrame, num_classes: int, test_images: int,
     final mean on ``test_images`` images, see the module docstring); the same for the GAN-test (on
     ``gan_test_images``)."""
     per_setting, gan_test = {}, None
-    for setting in [s for s in SETTINGS if s in set(table["setting"])]:
+    present = set(table["setting"])
+    for setting in [s for s in SETTINGS if s in present] + sorted(present - set(SETTINGS)):
         rows = table[table["setting"] == setting]
         by_epoch = rows.groupby("epoch")["test_accuracy"]
-        final = rows[rows["epoch"] == rows["epoch"].max()]
+        final = final_rows(rows)
         mean, std = _mean_std(final["test_accuracy"])
         per_setting[setting] = {
             "final_mean": mean, "final_std": std, "seeds": int(final["seed"].nunique()),
             "epoch_mean": _finite_list(by_epoch.mean()),
             "epoch_std": _finite_list(by_epoch.std(ddof=1).fillna(0.0)),
             "train_images": int(final["train_images"].iloc[0]), "generated_images": int(final["generated_images"].iloc[0]),
+            "epochs": [int(e) for e in final["epoch"]],
             "at_chance": at_chance(mean, test_images, num_classes) if mean is not None else False,
             "test_images": test_images, "interval": _interval(mean, test_images),
         }
@@ -133,6 +146,11 @@ def summarise(table: pd.DataFrame, num_classes: int, test_images: int,
                         "epoch_mean": _finite_list(gan.mean()),
                         "epoch_std": _finite_list(gan.std(ddof=1).fillna(0.0))}
     return per_setting, gan_test
+
+
+def final_rows(table: pd.DataFrame) -> pd.DataFrame:
+    """The last epoch's row of each (setting, seed) run: runs stopped early end before ``classify.epochs``."""
+    return table.loc[table.groupby(["setting", "seed"])["epoch"].idxmax()].sort_values(["setting", "seed"])
 
 
 def _interval(accuracy: float | None, count: int) -> list[float] | None:
@@ -248,13 +266,14 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
 
     Reads ``pairs_dir/splits.parquet`` and ``generated_root/<direction>/generated.parquet`` (paths in
     them relative to the working directory). Writes accuracy.parquet and accuracy.csv (one row per
-    setting, seed and epoch; columns ACCURACY_COLUMNS, gan_test_accuracy NaN outside ``real``),
-    summary.json (with ``chance`` and an ``at_chance`` flag per setting and for the GAN-test, see the
-    module docstring, and ``throughput``: training and evaluation images per second) and curves.png;
-    prints a warning line per flagged setting. A non-finite
-    training loss raises RuntimeError naming modality, setting, seed and epoch. With fewer than 2
-    classes nothing is trained: the tables are empty and summary.json's ``status`` says why;
-    otherwise ``status`` is "ok".
+    setting, seed and epoch; columns ACCURACY_COLUMNS, gan_test_accuracy NaN outside ``real``,
+    val_accuracy NaN without validation images), summary.json (with ``chance`` and an ``at_chance``
+    flag per setting and for the GAN-test, see the module docstring, ``policy``: the generated images
+    the default adds, chosen on the validation split, and its test accuracy beside real only,
+    ``precision`` and ``throughput``: training and evaluation images per second) and curves.png;
+    prints a warning line per flagged setting. A non-finite training loss raises RuntimeError naming
+    modality, setting, seed and epoch. With fewer than 2 classes nothing is trained: the tables are
+    empty and summary.json's ``status`` says why; otherwise ``status`` is "ok".
     """
     cfg = params["classify"]
     torch.set_num_threads(cfg["threads"])
@@ -273,16 +292,25 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
         return _not_applicable(summary, modality, len(real[real["split"] == "train"]), out_dir)
     sets = _image_sets(real, generated, classes, cfg["size"], direction, summary["notes"])
     settings, skipped = _applicable_settings(sets, modality, generated_file, summary["notes"])
+    plan = policy_plan(cfg["policy"], sets, classes, settings)
+    settings += [c["setting"] for c in plan["candidates"] if c["setting"] not in settings]
     device = resolve_device(params["translation"]["device"])
-    table, predictions, encoder, speed = _train_settings(sets, settings, cfg, modality, len(classes), device, progress)
+    precision, why = resolve_precision(cfg["precision"], device)
+    runs, speed = _train_settings(sets, settings, plan, cfg, modality, len(classes), device, precision, progress)
+    table = accuracy_rows(runs, modality, len(classes), len(sets["test"][0]))
+    predictions = {k: r["run"].test_predictions.numpy() for k, r in runs.items()}
+    predictions.update({(GAN_TEST, seed): r["run"].extra_predictions["gan_test"].numpy()
+                        for (setting, seed), r in runs.items() if setting == "real" and len(sets["gan"][0])})
     per_setting, gan_test = summarise(table, len(classes), len(sets["test"][0]), len(sets["gan"][0]))
     by_class = pd.concat([
         accuracy_by_class({k: v for k, v in predictions.items() if k[0] != GAN_TEST}, sets["test"][1].numpy(), classes,
                           modality),
         accuracy_by_class({k: v for k, v in predictions.items() if k[0] == GAN_TEST}, sets["gan"][1].numpy(), classes,
                           modality)], ignore_index=True)
-    summary.update(status="ok", chance=1.0 / len(classes), device=str(device), counts=sets["counts"],
-                   settings=per_setting, skipped=skipped, gan_test=gan_test, comparisons=compare_settings(per_setting),
+    encoder = runs[("real", cfg["seeds"][0])]["run"].model
+    summary.update(status="ok", chance=1.0 / len(classes), device=str(device), precision={"used": precision, "why": why},
+                   counts=sets["counts"], settings=per_setting, skipped=skipped, gan_test=gan_test,
+                   comparisons=compare_settings(per_setting), policy=choose_policy(plan, runs, sets, per_setting),
                    test_images_per_class=sets["counts"]["per_class_real_test"],
                    encoder={"file": "encoder.pt", "setting": "real", "seed": cfg["seeds"][0]},
                    wall_seconds=round(float(table.groupby(["setting", "seed"])["seconds"].first().sum()), 2),
@@ -302,7 +330,7 @@ def _not_applicable(summary: dict, modality: str, real_train: int, out_dir: Path
     held = f" ({classes[0]})" if classes else ""
     status = f"not applicable: classification needs at least 2 classes, the data has {len(classes)}{held}"
     summary.update(status=status, chance=None, counts={"real_train": real_train}, settings={}, skipped={},
-                   gan_test=None, comparisons=[])
+                   gan_test=None, comparisons=[], policy=None)
     with atomic_output_dir(out_dir) as tmp:
         _write_outputs(tmp, pd.DataFrame(columns=list(ACCURACY_COLUMNS)), summary, {}, None, status)
     print(f"classify {modality}: warning: {status}; empty tables -> {out_dir}")
@@ -311,33 +339,40 @@ def _not_applicable(summary: dict, modality: str, real_train: int, out_dir: Path
 
 def _image_sets(real: pd.DataFrame, generated: pd.DataFrame, classes: list[str], size: int, direction: str,
                 notes: list[str]) -> dict:
-    """The four image sets as (images, labels): ``train`` and ``test`` (real), ``generated`` (training
-    inputs translated) and ``gan`` (test inputs translated, for the GAN-test), plus ``counts``.
-    Images of classes without real training tiles are left out, with a note; a test image in a
-    training set is a split leak and an error."""
+    """The image sets as (images, labels): ``train``, ``val`` and ``test`` (real), ``generated`` (training
+    inputs translated) and ``gan`` (test inputs translated, for the GAN-test), plus ``counts`` and the
+    split groups of the validation and test images (``val_groups``, ``test_groups``). Each tile is
+    decoded once here and shared by every setting and seed. Images of classes without real training
+    tiles are left out, with a note; a test or validation image in a training set is a split leak and
+    an error."""
     label_of = {name: i for i, name in enumerate(classes)}
-    real_train = real[real["split"] == "train"].sort_values("path")
-    real_test = real[real["split"] == "test"].sort_values("path")
+    by_split = {split: real[real["split"] == split].sort_values("path") for split in ("train", "val", "test")}
     gen_train = generated[generated["split"] == "train"].sort_values(["scope", "output_path"])
     gen_test = generated[generated["split"] == "test"].sort_values(["scope", "output_path"])
-    for name, frame in (("real test", real_test), ("generated training", gen_train), ("generated test", gen_test)):
+    for name, frame in (("real validation", by_split["val"]), ("real test", by_split["test"]),
+                        ("generated training", gen_train), ("generated test", gen_test)):
         unknown = sorted(set(frame["class"]) - set(classes))
         if unknown:
             notes.append(f"{name} images of classes without real training tiles left out: {', '.join(unknown)}")
-    real_test, gen_train, gen_test = (f[f["class"].isin(classes)] for f in (real_test, gen_train, gen_test))
-    leaked = set(real[real["split"] == "test"]["path"]) & (set(real_train["path"]) | set(gen_train["output_path"]))
+    real_val, real_test, gen_train, gen_test = (f[f["class"].isin(classes)]
+                                                for f in (by_split["val"], by_split["test"], gen_train, gen_test))
+    real_train = by_split["train"]
+    held_out = set(real[real["split"].isin(["test", "val"])]["path"])
+    leaked = held_out & (set(real_train["path"]) | set(gen_train["output_path"]))
     if leaked:  # check_generated_splits has vetted the inputs; this guards the assembled sets themselves
-        raise ValueError(f"split leak: {len(leaked)} test image(s) in the training set, e.g. {sorted(leaked)[0]}")
+        raise ValueError(f"split leak: {len(leaked)} held-out image(s) in the training set, e.g. {sorted(leaked)[0]}")
 
     def load(frame: pd.DataFrame, column: str) -> tuple[torch.Tensor, torch.Tensor]:
         remedy = "rerun the roi stage" if column == "path" else f"rerun the generate stage ({direction})"
         return (read_tiles(list(frame[column]), size, remedy=remedy),
                 torch.tensor([label_of[c] for c in frame["class"]], dtype=torch.long))
 
-    sets = {"train": load(real_train, "path"), "test": load(real_test, "path"),
-            "generated": load(gen_train, "output_path"), "gan": load(gen_test, "output_path")}
-    sets["counts"] = {"real_train": len(real_train), "real_test": len(real_test), "generated_train": len(gen_train),
-                      "generated_test": len(gen_test),
+    sets = {"train": load(real_train, "path"), "val": load(real_val, "path"), "test": load(real_test, "path"),
+            "generated": load(gen_train, "output_path"), "gan": load(gen_test, "output_path"),
+            "val_groups": real_val["group"].astype(str).to_numpy(), "test_groups": real_test["group"].astype(str).to_numpy(),
+            "val_classes": sorted(set(real_val["class"]))}
+    sets["counts"] = {"real_train": len(real_train), "real_val": len(real_val), "real_test": len(real_test),
+                      "generated_train": len(gen_train), "generated_test": len(gen_test),
                       "per_class_real_train": real_train["class"].value_counts().sort_index().to_dict(),
                       "per_class_real_test": {c: int((real_test["class"] == c).sum()) for c in classes},
                       "low_data_real_train": {}}
@@ -358,66 +393,162 @@ def _applicable_settings(sets: dict, modality: str, generated_file: Path, notes:
     return settings, skipped
 
 
-def _train_settings(sets: dict, settings: list[str], cfg: dict, modality: str, num_classes: int, device,
-                    progress: bool) -> tuple[pd.DataFrame, dict, torch.nn.Module]:
-    """Train one classifier per seed and setting. Returns one accuracy row per epoch, the final predicted
-    labels per (setting, seed) on the real test images (and on the generated test images under
-    ``(GAN_TEST, seed)``, by the ``real`` classifier), the ``real`` classifier of the first seed, and
-    summary.json's ``throughput`` (:func:`throughput`)."""
+# ---------------------------------------------------------------- the policy: which generated images the default adds
+
+
+def policy_plan(policy: dict, sets: dict, classes: list[str], settings: list[str]) -> dict:
+    """The candidates to train (classify.policy), or none and the reason the policy is real only: mode
+    ``real``, no generated training images, or classes without validation images. A candidate that
+    keeps every generated image is the ``real+generated`` setting, trained anyway."""
+    plan = {"mode": policy["mode"], "confidence": policy["confidence"], "candidates": [], "fallback": None}
+    if policy["mode"] == "real":
+        plan["fallback"] = "classify.policy.mode is real: generated images are never added"
+    elif "real+generated" not in settings:
+        plan["fallback"] = "no generated training images to add"
+    else:
+        plan["fallback"] = generated_policy.missing_validation(sets["val_classes"], classes)
+    if plan["fallback"]:
+        return plan
+    gen_y, train_y = sets["generated"][1].numpy(), sets["train"][1].numpy()
+    real_per_class = {int(c): int(n) for c, n in zip(*np.unique(train_y, return_counts=True))}
+    for item in policy["candidates"]:
+        ratio, kind = float(item["ratio"]), item["filter"]
+        keeps_all = kind == "all" and all(n <= math.floor(ratio * real_per_class.get(int(c), 0) + 1e-9)
+                                          for c, n in zip(*np.unique(gen_y, return_counts=True)))
+        name = "real+generated" if keeps_all else generated_policy.candidate_setting(ratio, kind)
+        if name not in [c["setting"] for c in plan["candidates"]]:
+            plan["candidates"].append({"setting": name, "ratio": ratio, "filter": kind,
+                                       "real_per_class": real_per_class})
+    return plan
+
+
+def choose_policy(plan: dict, runs: dict, sets: dict, per_setting: dict) -> dict:
+    """summary.json's ``policy``: the setting chosen on the validation split (or real only and why), each
+    candidate's validation accuracy and gain, and the chosen setting's test accuracy beside real only,
+    with 95% Wilson intervals and the paired test gain's interval over test groups."""
+    seeds = sorted({seed for setting, seed in runs if setting == "real"})
+    result = {"mode": plan["mode"], "val_images": int(len(sets["val"][0])),
+              "val_groups": int(len(set(sets["val_groups"])))}
+    if plan["fallback"]:
+        result.update(chosen="real", reason=plan["fallback"], candidates=[])
+    else:
+        val_y = sets["val"][1].numpy()
+        correct = {name: np.stack([runs[(name, s)]["run"].extra_predictions["val"].numpy() == val_y for s in seeds])
+                   for name in ["real"] + [c["setting"] for c in plan["candidates"]]}
+        result.update(generated_policy.choose(correct, sets["val_groups"]))
+        for row, item in zip(result["candidates"], plan["candidates"]):
+            row.update(ratio=item["ratio"], filter=item["filter"],
+                       generated_images=[int(runs[(item["setting"], s)]["generated"]) for s in seeds])
+    chosen, real = per_setting.get(result["chosen"]) or {}, per_setting.get("real") or {}
+    test_y = sets["test"][1].numpy()
+    gain = generated_policy.paired_difference(
+        np.stack([runs[(result["chosen"], s)]["run"].test_predictions.numpy() == test_y for s in seeds]),
+        np.stack([runs[("real", s)]["run"].test_predictions.numpy() == test_y for s in seeds]),
+        sets["test_groups"]) if len(test_y) else (None, None, None)
+    result["uses_generated"] = result["chosen"] != "real"
+    result["test"] = {"setting": result["chosen"], "accuracy": chosen.get("final_mean"),
+                      "interval": chosen.get("interval"), "real_accuracy": real.get("final_mean"),
+                      "real_interval": real.get("interval"), "images": int(len(test_y)),
+                      "gain": None if gain[0] is None else round(gain[0], 6),
+                      "gain_interval": None if gain[0] is None else [round(gain[1], 6), round(gain[2], 6)]}
+    return result
+
+
+# ---------------------------------------------------------------- training every setting and seed
+
+
+def _training_set(setting: str, seed: int, sets: dict, subset: torch.Tensor, plan: dict,
+                  real_model) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """The training images and labels of ``setting`` for ``seed`` and how many of them are real."""
+    (train_x, train_y), (gen_x, gen_y) = sets["train"], sets["generated"]
+    real_x, real_y = (train_x[subset], train_y[subset]) if setting.startswith("low-data") else (train_x, train_y)
+    if setting in ("real+generated", "low-data real+generated"):
+        chosen = torch.arange(len(gen_x))
+    elif setting in ("real", "low-data real"):
+        chosen = torch.zeros(0, dtype=torch.long)
+    else:
+        item = next(c for c in plan["candidates"] if c["setting"] == setting)
+        probability = None
+        if item["filter"] == "confident":
+            probability = class_probabilities(real_model, gen_x)[torch.arange(len(gen_y)), gen_y].numpy()
+        chosen = torch.from_numpy(generated_policy.generated_subset(
+            gen_y.numpy(), item["real_per_class"], item["ratio"], item["filter"], seed, probability,
+            plan["confidence"]))
+    return torch.cat([real_x, gen_x[chosen]]), torch.cat([real_y, gen_y[chosen]]), len(real_x)
+
+
+def _train_settings(sets: dict, settings: list[str], plan: dict, cfg: dict, modality: str, num_classes: int, device,
+                    precision: str, progress: bool) -> tuple[dict, dict]:
+    """Train one classifier per seed and setting (``real`` first: the confident filter reads its model).
+    Returns ``{(setting, seed): {"run", "train_images", "real_images", "generated"}}`` and summary.json's
+    ``throughput`` (:func:`throughput`). A candidate whose filter keeps no generated image is the
+    ``real`` run itself (the same images and seed train the same model)."""
     weights_file = cfg["weights"] or None
     if weights_file and not Path(weights_file).is_file():
         raise ValueError(f"{weights_file}: weights file not found (classify.weights; \"\" trains from scratch)")
     weights = read_state_dict(weights_file) if weights_file else None
-    (train_x, train_y), (test_x, test_y), (gen_x, gen_y), (gan_x, gan_y) = (
-        sets[k] for k in ("train", "test", "generated", "gan"))
-    rows, predictions, encoder = [], {}, None
+    val = sets["val"] if len(sets["val"][0]) else None
+    runs: dict = {}
     work = dict.fromkeys(("train", "train_seconds", "norm_seconds", "eval", "eval_seconds"), 0)
     bar = tqdm(total=len(settings) * len(cfg["seeds"]), desc=f"classify {modality}", unit="run", disable=not progress,
                dynamic_ncols=True)
     for seed in cfg["seeds"]:
-        subset = torch.from_numpy(low_data_subset(train_y.numpy(), cfg["low_data_fraction"], seed))
+        subset = torch.from_numpy(low_data_subset(sets["train"][1].numpy(), cfg["low_data_fraction"], seed))
         sets["counts"]["low_data_real_train"][str(seed)] = len(subset)
         for setting in settings:
-            real_x, real_y = (train_x[subset], train_y[subset]) if setting.startswith("low-data") else (train_x, train_y)
-            use_generated = setting.endswith("+generated")
-            x = torch.cat([real_x, gen_x]) if use_generated else real_x
-            y = torch.cat([real_y, gen_y]) if use_generated else real_y
-            extra = {"gan_test": (gan_x, gan_y)} if setting == "real" and len(gan_x) else None
+            real_run = runs.get(("real", seed), {}).get("run")
+            x, y, real_count = _training_set(setting, seed, sets, subset, plan, real_run and real_run.model)
             bar.set_description(f"classify {modality}: {setting}, seed {seed}")
-
-            def show(epoch: int, row: dict) -> None:
-                bar.set_postfix({"epoch": epoch, "acc": f"{row['test_accuracy']:.3f}", "loss": f"{row['train_loss']:.3f}"},
-                                refresh=True)
-
-            try:
-                run = train_classifier(x, y, test_x, test_y, num_classes, cfg, seed, device, extra_eval=extra,
-                                       weights=weights, weights_source=str(weights_file),
-                                       retrain_layers=cfg["retrain_layers"], progress=show)
-            except TrainingDiverged as exc:
-                bar.close()
-                raise RuntimeError(f"classify {modality}: setting '{setting}', seed {seed}: the training loss became "
-                                   f"non-finite ({exc.loss}) in epoch {exc.epoch}; lower classify.lr "
-                                   f"(now {cfg['lr']:g})") from exc
-            # the final epoch's evaluation already classified these images with this model
-            predictions[(setting, seed)] = run.test_predictions.numpy()
+            if setting not in SETTINGS and len(x) == real_count:
+                runs[(setting, seed)] = dict(runs[("real", seed)], generated=0, seconds=0.0)
+                bar.update(1)
+                continue
+            extra = {"gan_test": sets["gan"]} if setting == "real" and len(sets["gan"][0]) else None
+            run = _train_one(x, y, sets, cfg, modality, setting, seed, num_classes, device, precision, weights,
+                             weights_file, extra, val, bar)
+            runs[(setting, seed)] = {"run": run, "train_images": len(x), "real_images": real_count,
+                                     "generated": len(x) - real_count}
             for name, value in (("train", run.train_images), ("train_seconds", run.train_seconds),
                                 ("norm_seconds", run.norm_seconds), ("eval", run.eval_images),
                                 ("eval_seconds", run.eval_seconds)):
                 work[name] += value
-            if setting == "real":
-                encoder = encoder or run.model
-                if len(gan_x):
-                    predictions[(GAN_TEST, seed)] = run.extra_predictions["gan_test"].numpy()
-            gan = run.extra_accuracy.get("gan_test", [math.nan] * len(run.test_accuracy))
-            for epoch, (acc, gan_acc) in enumerate(zip(run.test_accuracy, gan), start=1):
-                rows.append({"modality": modality, "setting": setting, "seed": seed, "epoch": epoch,
-                             "test_accuracy": acc, "at_chance": at_chance(acc, len(test_x), num_classes),
-                             "gan_test_accuracy": gan_acc, "train_images": len(x),
-                             "real_images": len(real_x), "generated_images": len(x) - len(real_x),
-                             "seconds": run.seconds})
             bar.update(1)
     bar.close()
-    return pd.DataFrame(rows, columns=list(ACCURACY_COLUMNS)), predictions, encoder, throughput(work)
+    return runs, throughput(work)
+
+
+def _train_one(x, y, sets, cfg, modality, setting, seed, num_classes, device, precision, weights, weights_file, extra,
+               val, bar):
+    """One :func:`train_classifier` run; a diverged loss becomes a RuntimeError naming the setting and seed."""
+    def show(epoch: int, row: dict) -> None:
+        bar.set_postfix({"epoch": epoch, "acc": f"{row['test_accuracy']:.3f}", "loss": f"{row['train_loss']:.3f}"},
+                        refresh=True)
+
+    try:
+        return train_classifier(x, y, *sets["test"], num_classes, cfg, seed, device, extra_eval=extra, weights=weights,
+                                weights_source=str(weights_file), retrain_layers=cfg["retrain_layers"], progress=show,
+                                val=val, precision=precision)
+    except TrainingDiverged as exc:
+        bar.close()
+        raise RuntimeError(f"classify {modality}: setting '{setting}', seed {seed}: the training loss became "
+                           f"non-finite ({exc.loss}) in epoch {exc.epoch}; lower classify.lr "
+                           f"(now {cfg['lr']:g})") from exc
+
+
+def accuracy_rows(runs: dict, modality: str, num_classes: int, test_images: int) -> pd.DataFrame:
+    """The accuracy table (ACCURACY_COLUMNS): one row per setting, seed and epoch run."""
+    rows = []
+    for (setting, seed), entry in runs.items():
+        run = entry["run"]
+        nan = [math.nan] * len(run.test_accuracy)
+        for epoch, (acc, gan_acc, val_acc) in enumerate(zip(run.test_accuracy, run.extra_accuracy.get("gan_test", nan),
+                                                            run.extra_accuracy.get("val", nan)), start=1):
+            rows.append({"modality": modality, "setting": setting, "seed": seed, "epoch": epoch,
+                         "test_accuracy": acc, "at_chance": at_chance(acc, test_images, num_classes),
+                         "gan_test_accuracy": gan_acc if setting == "real" else math.nan, "val_accuracy": val_acc,
+                         "train_images": entry["train_images"], "real_images": entry["real_images"],
+                         "generated_images": entry["generated"], "seconds": entry.get("seconds", run.seconds)})
+    return pd.DataFrame(rows, columns=list(ACCURACY_COLUMNS))
 
 
 def throughput(work: dict) -> dict:
@@ -444,8 +575,18 @@ def _print_result(summary: dict, modality: str, seeds: int, out_dir: Path) -> No
     for item in summary["comparisons"]:
         print(f"classify {modality}: {item['setting']} vs {item['against']}: {item['difference']:+.3f}, "
               f"{item['verdict']} (n = {summary['counts']['real_test']} test images)")
+    policy = summary["policy"]
+    test = policy["test"]
+    if test["accuracy"] is not None and test["real_accuracy"] is not None:
+        print(f"classify {modality}: policy '{policy['chosen']}' ({policy['reason']}): test accuracy "
+              f"{test['accuracy']:.3f} {_bracket(test['interval'])} against real only {test['real_accuracy']:.3f} "
+              f"{_bracket(test['real_interval'])} (n = {test['images']} test images)")
     print(f"classify {modality}: final test accuracy over {seeds} seed(s): {finals}{gan_text} "
           f"({len(summary['classes'])} classes, {summary['wall_seconds']:.0f} s training; {_speed_text(summary)}) -> {out_dir}")
+
+
+def _bracket(interval: list[float] | None) -> str:
+    return f"[{interval[0]:.3f}, {interval[1]:.3f}]" if interval else "[no interval]"
 
 
 def _speed_text(summary: dict) -> str:

@@ -135,6 +135,12 @@ def classification(classify_dir: Path) -> dict:
     return found
 
 
+def settings_in(names) -> list[str]:
+    """The settings among ``names`` in SETTING_ORDER, then any other (the policy's candidates) sorted."""
+    present = set(names)
+    return [s for s in SETTING_ORDER if s in present] + sorted(present - set(SETTING_ORDER) - {GAN_TEST})
+
+
 def _optional_columns(path: Path, keys: list[str], needs: list[str], what: str) -> pd.DataFrame:
     """A stage table that may be empty with its key columns only (a stage with nothing to do); when it
     has rows, every column of ``needs`` must be there."""
@@ -291,6 +297,69 @@ def verdict_lines(data: dict) -> list[dict]:
     return lines
 
 
+# ---------------------------------------------------------------- the first screen
+
+
+VERDICT_COLOURS = ("ok", "unresolved", "warning", "uninformative", "not scored")
+
+
+def policy_rows(data: dict) -> list[dict]:
+    """"Does generated data help here?": per modality, the classify stage's policy (the setting chosen on the
+    validation split, or real only and why) and its test accuracy beside real only's, with intervals."""
+    rows = []
+    for modality, entry in data["classify"].items():
+        summary = entry["summary"]
+        policy = summary.get("policy")
+        if summary.get("status", "ok") != "ok" or not policy:
+            rows.append({"modality": modality, "answer": "not measured", "status": "not scored",
+                         "chosen": "—", "accuracy": "—", "real": "—", "gain": "—", "n": "—",
+                         "why": summary.get("status") if summary.get("status", "ok") != "ok"
+                         else "this classify run predates the policy (no summary.json policy)"})
+            continue
+        test = policy["test"]
+        gain = test.get("gain")
+        low, high = test.get("gain_interval") or (None, None)
+        if not policy["uses_generated"]:
+            answer, status = "no: real only", "unresolved" if policy.get("candidates") else "not scored"
+        else:
+            answer = "yes" if low is not None and low > 0 else "chosen on validation; within noise on test"
+            status = "ok" if low is not None and low > 0 else "unresolved"
+        if gain is not None and high is not None and high < 0:
+            status = "warning"  # below real only beyond the interval: the guarantee failed here
+        rows.append({"modality": modality, "answer": answer, "status": status, "chosen": policy["chosen"],
+                     "accuracy": interval_cell(test.get("accuracy"), *(test.get("interval") or (None, None))),
+                     "real": interval_cell(test.get("real_accuracy"), *(test.get("real_interval") or (None, None))),
+                     "gain": "—" if gain is None else f"{gain:+.3f}" + (f" [{low:+.3f}, {high:+.3f}]"
+                                                                         if low is not None else ""),
+                     "n": test.get("images", "—"), "why": policy.get("reason", "")})
+    return rows
+
+
+def verdict_grid(data: dict) -> dict | None:
+    """The score stage's verdicts as one direction x family grid: ``{"families", "rows": [{"direction",
+    "cells": [{"status", "text"}]}]}``, each cell the status (VERDICT_COLOURS) and a short value; None
+    when there are no verdicts."""
+    found = data["score_summary"].get("verdicts") or []
+    if not found:
+        return None
+    families = list(dict.fromkeys(v["family"] for v in found if v.get("family")))
+    rows = []
+    for direction in sorted({v["direction"] for v in found}, key=lambda d: list(DIRECTIONS).index(d)
+                            if d in DIRECTIONS else 9):
+        mine = {v["family"]: v for v in found if v.get("direction") == direction}
+        cells = []
+        for family in families:
+            v = mine.get(family)
+            if v is None:
+                cells.append({"status": "not scored", "text": "—"})
+                continue
+            value = v.get("generated")
+            text = v.get("status", "ok") + ("" if value is None else f" ({value:.3g})")
+            cells.append({"status": v.get("status", "ok"), "text": text})
+        rows.append({"direction": direction.upper(), "cells": cells})
+    return {"families": families, "rows": rows}
+
+
 # ---------------------------------------------------------------- headline numbers (metrics.json)
 
 
@@ -361,12 +430,13 @@ def distribution_headline(distribution: pd.DataFrame, memorisation: pd.DataFrame
 def classify_headline(entry: dict) -> dict:
     """Mean final-epoch test accuracy over seeds per setting, the GAN-test, the GAN-test as a share of the
     real-only test accuracy (``gan_test_vs_real``: how recognisable generated images are against real
-    ones), the test-set size and the accuracy gained from generated images per comparison
-    (``gain_from_generated``)."""
+    ones), the test-set size, the accuracy gained from generated images per comparison
+    (``gain_from_generated``) and the policy's (``policy``: the chosen setting's test accuracy beside
+    real only's, their difference and 1 where it adds generated images, 0 where not)."""
     table, summary = entry["accuracy"], entry["summary"]
     if summary.get("status", "ok") != "ok" or table.empty:
         return {}
-    last = table[table["epoch"] == table["epoch"].max()]
+    last = table[table["epoch"] == table.groupby(["setting", "seed"])["epoch"].transform("max")]
     result = {s: _number(g["test_accuracy"].mean()) for s, g in last.groupby("setting")}
     gan = last.loc[(last["setting"] == "real"), "gan_test_accuracy"].dropna()
     result["gan_test"] = _number(gan.mean()) if len(gan) else None
@@ -376,6 +446,11 @@ def classify_headline(entry: dict) -> dict:
     result["real_test_images"] = (summary.get("counts") or {}).get("real_test")
     result["gain_from_generated"] = _compact({c["setting"]: _number(c["difference"])
                                               for c in summary.get("comparisons") or []})
+    test = (summary.get("policy") or {}).get("test") or {}
+    if test.get("accuracy") is not None:
+        result["policy"] = _compact({"accuracy": _number(test["accuracy"]), "real_only": _number(test["real_accuracy"]),
+                                     "gain": _number(test.get("gain")),
+                                     "uses_generated": int(test["setting"] != "real")})
     return _compact(result)
 
 
@@ -548,7 +623,7 @@ def accuracy_table(accuracy: pd.DataFrame, modality: str, test_images: int | Non
     paper = PAPER["accuracy"].get(modality, {})
     iterations = sorted(set(part["epoch"]) | {i for values in paper.values() for i in values})
     table = pd.DataFrame({"epoch / iteration": iterations})
-    for setting in [s for s in SETTING_ORDER if s in set(part["setting"])]:
+    for setting in settings_in(part["setting"]):
         table[setting] = _mean_std_cells(part[part["setting"] == setting], "test_accuracy", iterations, test_images)
     gan = part[(part["setting"] == "real") & part["gan_test_accuracy"].notna()]
     if not gan.empty:
@@ -563,7 +638,7 @@ def final_accuracy_table(final: pd.DataFrame) -> pd.DataFrame:
     """Final-epoch accuracy per class and setting (mean over seeds) with its 95% Wilson interval and n."""
     classes = sorted(c for c in final["class"].unique() if c != "(all)") + ["(all)"]
     found = {(r["setting"], r["class"]): r for r in final.to_dict("records")}
-    settings = [s for s in SETTING_ORDER if s in set(final["setting"])]
+    settings = settings_in(final["setting"])
     table = pd.DataFrame({"class": classes})
     table["n real test"] = [found[(settings[0], c)]["images"] if settings and (settings[0], c) in found else "—"
                             for c in classes]
@@ -741,7 +816,7 @@ def accuracy_figure(accuracy: pd.DataFrame, path: Path) -> None:
     fig, axes = plt.subplots(1, max(len(modalities), 1), figsize=(11, 3.8), squeeze=False)
     for ax, modality in zip(axes[0], modalities):
         part = accuracy[accuracy["modality"] == modality]
-        for setting in [s for s in SETTING_ORDER if s in set(part["setting"])]:
+        for setting in settings_in(part["setting"]):
             stats = part[part["setting"] == setting].groupby("epoch")["test_accuracy"].agg(["mean", "min", "max"])
             ax.plot(stats.index, stats["mean"], marker="o", markersize=3, label=setting)
             ax.fill_between(stats.index, stats["min"], stats["max"], alpha=0.15)
@@ -884,6 +959,7 @@ def page_context(data: dict, figures: dict[str, bool], params: dict | None = Non
     return {
         **{k: data[k] for k in ("title", "synthetic", "dataset", "ingest", "pairs", "run", "params_yaml")},
         "directions": list(DIRECTIONS), "figures": figures, "verdicts": verdict_lines(data),
+        "policy": policy_rows(data), "verdict_grid": verdict_grid(data),
         "not_scored": skipped, "pair_kinds": data["pair_kinds"], "duplicates": duplicate_counts(data["ingest"]),
         "modalities": modalities_present(data["ingest"]),
         "test_per_class": {m: e["summary"].get("test_images_per_class") for m, e in data["classify"].items()
