@@ -1,24 +1,23 @@
-"""Classify stage speed, before vs after: seconds per modality run and images per second.
+"""Classify stage speed and accuracy, before vs after: seconds per modality run, images per second, accuracies.
 
 Runs the classify stage (``run_classify``, params.yaml's ``classify`` section: every setting, seed
-and epoch) of one modality with the source tree of a git ref (``--before``, default the commit
-before the speed work) and with the working tree, alternately (before, after, after, before, ...)
-in fresh subprocesses so that a change in machine load hits both alike; then checks that the two
-accuracy tables hold the same numbers. Prints a markdown table.
+and epoch) of one modality with the source tree of a git ref (``--before``) and with the working
+tree, once per ``--variant`` of the params (dotted overrides, e.g. ``patience2:classify.patience=2``),
+alternately (before, after..., then the reverse order in the next repeat) in fresh subprocesses so
+that a change in machine load hits all alike. Prints a markdown table: wall and CPU seconds, images
+per second, epochs run, and the final test accuracy of ``real`` and of the policy's choice (mean
+over seeds, 95% Wilson interval on the n real test images, the spread over seeds).
 
-    python benchmarks/classify_speed.py --root /path/to/a/finished/main/job --repeats 2
+    python benchmarks/classify_speed.py --root /path/to/a/run --modality visual --variant patience2:classify.patience=2
 
-``--root`` is the folder the tile paths in ``data/pairs/splits.parquet`` are relative to (the
-project root of a run that has finished the pairs stage). With ``--generated`` the generate
-stage's folder of that run is used; without it a stand-in is built in a temporary folder: the
-target modality's real tiles of the translated pairs (half the training inputs per class, every
-test input, as ``generate.train_share: 0.5`` gives) take the place of the generated images, which
-keeps the image counts and so the work of the stage, not its accuracies. Nothing is written under
-``--root``.
-
-The stage's own images per second (summary.json ``throughput``, printed by the stage) exist only
-after the change; the ``all images/s`` column counts, for both, every training image visit
-(settings x seeds x epochs) per second of the whole stage run, so it compares like with like.
+``--root`` is the folder the tile paths in the split table are relative to; ``--pairs`` (default
+``data/pairs``, relative to it) holds ``splits.parquet``. With ``--generated`` that generate
+folder is used; without it a stand-in is built in a temporary folder from the split table alone:
+per class, every second real training tile of the target modality is a "generated" training image
+(its input a training tile of the other modality of the class, taken in turn) and every real test
+tile a "generated" test image, as ``generate.train_share: 0.5`` gives. That keeps the image counts
+and so the work of the stage, not its accuracies (the stand-ins are real images). Nothing is
+written under ``--root``.
 """
 
 from __future__ import annotations
@@ -32,9 +31,11 @@ import tempfile
 from pathlib import Path
 
 import pandas as pd
+import yaml
 
 REPO = Path(__file__).resolve().parents[1]
-BEFORE = "5df5da9"  # the commit before the classify speed work
+BEFORE = "f928692"  # the commit before the classify policy, validation split and early stopping
+DIRECTIONS = {"v2t": ("visual", "tactile"), "t2v": ("tactile", "visual")}
 
 RUNNER = """
 import json, sys, time
@@ -47,22 +48,25 @@ params = yaml.safe_load(open(sys.argv[2]))
 started, cpu = time.perf_counter(), time.process_time()
 summary = run_classify(params, sys.argv[3], sys.argv[4], sys.argv[5], sys.argv[6], progress=False)
 print("BENCH " + json.dumps({"seconds": time.perf_counter() - started, "cpu_seconds": time.process_time() - cpu,
-                             "throughput": summary.get("throughput")}))
+                             "summary": summary}))
 """
 
 
-def stand_in_generated(root: Path, out: Path) -> Path:
-    """generated.parquet per direction whose images are the real target tiles of the translated pairs."""
-    for direction in ("v2t", "t2v"):
-        pairs = pd.read_parquet(root / "data/pairs" / f"{direction}.parquet")
-        train = pairs[pairs["split"] == "train"]
-        chosen = pd.concat([train[train["class"] == c].iloc[::2] for c in sorted(train["class"].unique())]
-                           + [pairs[pairs["split"] == "test"]]).reset_index(drop=True)
-        table = pd.DataFrame({"direction": direction, "scope": "all", "split": chosen["split"], "class": chosen["class"],
-                              "input_path": chosen["input_path"], "output_path": chosen["target_path"],
-                              "ground_truth_path": chosen["target_path"], "model": "stand-in"})
+def stand_in_generated(splits: pd.DataFrame, out: Path) -> Path:
+    """generated.parquet per direction whose images are real target tiles (see the module docstring)."""
+    for direction, (source, target) in DIRECTIONS.items():
+        rows = []
+        for split, step in (("train", 2), ("test", 1)):
+            for cls in sorted(splits["class"].unique()):
+                inputs = list(splits[(splits["modality"] == source) & (splits["split"] == split)
+                                     & (splits["class"] == cls)].sort_values("path")["path"])
+                targets = splits[(splits["modality"] == target) & (splits["split"] == split)
+                                 & (splits["class"] == cls)].sort_values("path")["path"].iloc[::step]
+                rows += [{"direction": direction, "scope": "all", "split": split, "class": cls,
+                          "input_path": inputs[i % len(inputs)], "output_path": path, "ground_truth_path": None,
+                          "model": "stand-in"} for i, path in enumerate(targets) if inputs]
         (out / direction).mkdir(parents=True, exist_ok=True)
-        table.to_parquet(out / direction / "generated.parquet", index=False)
+        pd.DataFrame(rows).to_parquet(out / direction / "generated.parquet", index=False)
     return out
 
 
@@ -74,71 +78,113 @@ def source_tree(ref: str, into: Path) -> Path:
     return into / "src"
 
 
-def run_once(src: Path, params: Path, modality: str, root: Path, generated: Path, out: Path) -> dict:
+def with_overrides(params: dict, overrides: list[str]) -> dict:
+    """``params`` with ``dotted.key=value`` overrides (values read as YAML)."""
+    params = json.loads(json.dumps(params))
+    for item in overrides:
+        key, _, value = item.partition("=")
+        *parents, last = key.split(".")
+        node = params
+        for name in parents:
+            node = node[name]
+        node[last] = yaml.safe_load(value)
+    return params
+
+
+def run_once(src: Path, params: Path, modality: str, root: Path, pairs: str, generated: Path, out: Path) -> dict:
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    done = subprocess.run([sys.executable, "-c", RUNNER, str(src), str(params), modality, "data/pairs", str(generated),
+    done = subprocess.run([sys.executable, "-c", RUNNER, str(src), str(params), modality, pairs, str(generated),
                            str(out)], cwd=root, env=env, capture_output=True, text=True)
     if done.returncode:
         raise SystemExit(f"classify run failed ({src}):\n{done.stderr[-3000:]}")
     line = next(l for l in done.stdout.splitlines() if l.startswith("BENCH "))
     result = json.loads(line[len("BENCH "):])
     result["table"] = pd.read_parquet(out / "accuracy.parquet")
-    result["log"] = [l for l in done.stdout.splitlines() if "final test accuracy" in l][-1]
     return result
+
+
+def accuracy_cell(stats: dict | None) -> str:
+    if not stats or stats.get("final_mean") is None:
+        return "-"
+    low, high = stats.get("interval") or (float("nan"), float("nan"))
+    return f"{stats['final_mean']:.3f} ± {stats.get('final_std') or 0:.3f} [{low:.3f}, {high:.3f}]"
+
+
+def policy_cell(summary: dict) -> str:
+    policy = summary.get("policy")
+    if not policy:
+        return "- (no policy)"
+    test = policy["test"]
+    low, high = test.get("interval") or (float("nan"), float("nan"))
+    return f"{policy['chosen']}: {test['accuracy']:.3f} [{low:.3f}, {high:.3f}]"
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--root", required=True, help="project root of a run that has finished the pairs stage")
-    parser.add_argument("--generated", help="that run's generate folder (default: a stand-in, see the docstring)")
+    parser.add_argument("--root", required=True, help="folder the split table's tile paths are relative to")
+    parser.add_argument("--pairs", default="data/pairs", help="folder of splits.parquet, relative to --root")
+    parser.add_argument("--generated", help="a generate folder (default: a stand-in, see the docstring)")
     parser.add_argument("--modality", default="tactile", choices=["visual", "tactile"])
     parser.add_argument("--params", default=str(REPO / "params.yaml"))
     parser.add_argument("--before", default=BEFORE, help=f"git ref of the 'before' code (default {BEFORE})")
-    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--variant", action="append", default=[],
+                        help="NAME:key=value[,key=value]: one more 'after' run with these params overrides")
+    parser.add_argument("--repeats", type=int, default=1)
     args = parser.parse_args()
     root = Path(args.root).resolve()
+    base = yaml.safe_load(Path(args.params).read_text())
     with tempfile.TemporaryDirectory(prefix="classify_speed_") as tmp:
         tmp = Path(tmp)
-        generated = Path(args.generated).resolve() if args.generated else stand_in_generated(root, tmp / "generated")
-        versions = {f"before ({args.before})": source_tree(args.before, tmp / "before"), "after (working tree)": REPO / "src"}
-        results: dict[str, list[dict]] = {name: [] for name in versions}
+        splits = pd.read_parquet(root / args.pairs / "splits.parquet")
+        generated = Path(args.generated).resolve() if args.generated else stand_in_generated(splits, tmp / "generated")
+        codes = {f"before ({args.before})": (source_tree(args.before, tmp / "before"), [])}
+        codes["after (working tree)"] = (REPO / "src", [])
+        for item in args.variant:
+            name, _, overrides = item.partition(":")
+            codes[f"after, {name}"] = (REPO / "src", overrides.split(","))
+        params_files = {}
+        for name, (_, overrides) in codes.items():
+            params_files[name] = tmp / f"params_{len(params_files)}.yaml"
+            params_files[name].write_text(yaml.safe_dump(with_overrides(base, overrides)))
+        results: dict[str, list[dict]] = {name: [] for name in codes}
         load = [os.getloadavg()[0]]
-        for repeat in range(args.repeats):  # ABBA: before first in even repeats, after first in odd ones
-            for name, src in list(versions.items())[::1 if repeat % 2 == 0 else -1]:
-                result = run_once(src, Path(args.params).resolve(), args.modality, root, generated,
-                                  tmp / f"out_{len(results[name])}_{name.split()[0]}")
+        for repeat in range(args.repeats):  # before first in even repeats, last in odd ones
+            for name, (src, _) in list(codes.items())[::1 if repeat % 2 == 0 else -1]:
+                out = tmp / f"out_{repeat}_{list(codes).index(name)}"
+                result = run_once(src, params_files[name], args.modality, root, args.pairs, generated, out)
                 results[name].append(result)
                 load.append(os.getloadavg()[0])
-                print(f"# {name}, run {repeat + 1}: {result['seconds']:.1f} s; {result['log']}", file=sys.stderr)
-        reference = results[next(iter(versions))][0]["table"]
-        visits = int((reference.groupby(["setting", "seed"])["train_images"].first()
-                      * reference["epoch"].max()).sum())
-        command = (f"python benchmarks/classify_speed.py --root {args.root}"
+                print(f"# {name}, run {repeat + 1}: {result['seconds']:.1f} s wall, {result['cpu_seconds']:.1f} s CPU",
+                      file=sys.stderr, flush=True)
+        counts = results[next(iter(codes))][0]["summary"]["counts"]
+        command = (f"python benchmarks/classify_speed.py --root {args.root} --pairs {args.pairs}"
                    + (f" --generated {args.generated}" if args.generated else "")
-                   + (f" --params {args.params}" if Path(args.params).resolve() != REPO / "params.yaml" else "")
-                   + f" --modality {args.modality} --repeats {args.repeats}")
-        print(f"classify {args.modality}: {visits} training image visits per run "
-              f"({'stand-in' if not args.generated else 'generated'} images), torch threads: classify.threads; "
-              f"load average (1 min) seen {min(load):.1f} to {max(load):.1f}; `{command}`\n")
-        print("| code | stage wall s per run (each run) | stage CPU s (each run) | all images/s (wall) | "
-              "training images/s | evaluation images/s | accuracies identical to before |")
-        print("|---|---|---|---|---|---|---|")
+                   + f" --modality {args.modality} --repeats {args.repeats}"
+                   + "".join(f" --variant {v}" for v in args.variant))
+        print(f"classify {args.modality}: {counts['real_train']} real training, {counts.get('real_val', '?')} "
+              f"validation, {counts['real_test']} test images, {counts['generated_train']} "
+              f"{'stand-in' if not args.generated else 'generated'} training images; seeds "
+              f"{base['classify']['seeds']}, {base['classify']['epochs']} epochs at most; torch threads "
+              f"{base['classify']['threads']}; load average (1 min) seen {min(load):.1f} to {max(load):.1f}; "
+              f"`{command}`\n")
+        print("| code | stage wall s (each run) | stage CPU s (each run) | training image visits | training images/s "
+              "| evaluation images/s | epochs run (mean) | real: test accuracy ± std over seeds [95%] | "
+              "policy: chosen, test accuracy [95%] |")
+        print("|---|---|---|---|---|---|---|---|---|")
         for name, runs in results.items():
             seconds, cpu = [r["seconds"] for r in runs], [r["cpu_seconds"] for r in runs]
-            speeds = [r["throughput"] for r in runs if r["throughput"]]
-            same = all(r["table"][["test_accuracy", "gan_test_accuracy"]].equals(
-                reference[["test_accuracy", "gan_test_accuracy"]]) for r in runs)
-            own = (f"{max(s['train_images_per_second'] for s in speeds):.0f} | "
-                   f"{max(s['eval_images_per_second'] for s in speeds):.0f}") if speeds else "- | -"
+            summary, table = runs[0]["summary"], runs[0]["table"]
+            speed = summary.get("throughput") or {}
+            last = table.groupby(["setting", "seed"])["epoch"].max()
             print(f"| {name} | {min(seconds):.1f} ({', '.join(f'{v:.1f}' for v in seconds)}) | "
-                  f"{min(cpu):.1f} ({', '.join(f'{v:.1f}' for v in cpu)}) | {visits / min(seconds):.0f} | {own} | "
-                  f"{'yes' if same else 'NO'} |")
-        before, after = results.values()
-        pairs = list(zip(before, after))  # runs of one repeat: next to each other in time
-        print(f"\nspeed-up, before / after: wall {min(r['seconds'] for r in before) / min(r['seconds'] for r in after):.2f}x "
-              f"(best runs), CPU {min(r['cpu_seconds'] for r in before) / min(r['cpu_seconds'] for r in after):.2f}x; "
-              f"per interleaved pair (wall / CPU): "
-              + ", ".join(f"{b['seconds'] / a['seconds']:.2f}x / {b['cpu_seconds'] / a['cpu_seconds']:.2f}x" for b, a in pairs))
+                  f"{min(cpu):.1f} ({', '.join(f'{v:.1f}' for v in cpu)}) | {speed.get('train_images', '-')} | "
+                  f"{speed.get('train_images_per_second') or '-'} | {speed.get('eval_images_per_second') or '-'} | "
+                  f"{last.mean():.1f} | {accuracy_cell(summary['settings'].get('real'))} | {policy_cell(summary)} |")
+        print("\nall settings (test accuracy, mean ± std over seeds [95% Wilson on the n test images]):")
+        for name, runs in results.items():
+            settings = runs[0]["summary"]["settings"]
+            print(f"- {name}: " + "; ".join(f"{s} {accuracy_cell(v)}" for s, v in settings.items()))
+
 
 if __name__ == "__main__":
     main()

@@ -401,6 +401,40 @@ class EarlyStopping:
         return epoch - self.best_epoch >= self.patience
 
 
+def _checked_sets(train_x, train_y, test_x, test_y, num_classes, size, extra_eval, val, precision) -> dict:
+    """Validate train_classifier's arguments (ValueError naming the set); return the extra sets to evaluate,
+    the validation set among them as ``"val"``."""
+    if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 2:
+        raise ValueError(f"classification needs at least 2 classes, got {num_classes!r}")
+    if len(train_x) == 0:
+        raise ValueError("the training set is empty")
+    if precision not in ("fp32", "bf16"):
+        raise ValueError(f"precision must be fp32 or bf16, got {precision!r}")
+    _check_set("training set", train_x, train_y, num_classes, size)
+    _check_set("test set", test_x, test_y, num_classes, size)
+    extra_eval = dict(extra_eval or {})
+    if val is not None and len(val[0]):
+        if "val" in extra_eval:
+            raise ValueError("extra_eval may not name a set 'val' when a validation set is given")
+        extra_eval["val"] = val
+    for name, (x, y) in extra_eval.items():
+        _check_set(f"evaluation set {name!r}", x, y, num_classes, size)
+    return extra_eval
+
+
+def _evaluate(model: AlexNet, evaluated: dict, scaled: bool, precision: str, run: ClassifierRun,
+              predictions: dict) -> None:
+    """Classify every evaluated set (the test set under ``_TEST``); append each accuracy to ``run`` and keep the
+    predicted classes in ``predictions``."""
+    device = next(model.parameters()).device
+    for name, (x, y) in evaluated.items():
+        with _autocast(device, precision):
+            predictions[name] = _predict_classes(model, x, scaled=scaled)
+        share = int((predictions[name] == y).sum()) / len(y) if len(y) else math.nan
+        (run.test_accuracy if name is _TEST else run.extra_accuracy[name]).append(share)
+        run.eval_images += len(y)
+
+
 def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch.Tensor, test_y: torch.Tensor,
                      num_classes: int, settings: Mapping, seed: int, device: str | torch.device = "cpu",
                      extra_eval: Mapping[str, tuple[torch.Tensor, torch.Tensor]] | None = None,
@@ -425,23 +459,9 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
     under the name ``"val"`` in ``extra_predictions``) and where its time went (``train_seconds`` for
     ``train_images`` image visits, ``eval_seconds`` for ``eval_images`` classified, ``norm_seconds``).
     """
-    if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 2:
-        raise ValueError(f"classification needs at least 2 classes, got {num_classes!r}")
-    if len(train_x) == 0:
-        raise ValueError("the training set is empty")
-    if precision not in ("fp32", "bf16"):
-        raise ValueError(f"precision must be fp32 or bf16, got {precision!r}")
-    size, epochs, batch_size = settings["size"], settings["epochs"], settings["batch_size"]
-    _check_set("training set", train_x, train_y, num_classes, size)
-    _check_set("test set", test_x, test_y, num_classes, size)
-    extra_eval = dict(extra_eval or {})
-    if val is not None and len(val[0]):
-        if "val" in extra_eval:
-            raise ValueError("extra_eval may not name a set 'val' when a validation set is given")
-        extra_eval["val"] = val
-    for name, (x, y) in extra_eval.items():
-        _check_set(f"evaluation set {name!r}", x, y, num_classes, size)
-    device = torch.device(device)
+    extra_eval = _checked_sets(train_x, train_y, test_x, test_y, num_classes, settings["size"], extra_eval, val,
+                               precision)
+    epochs, batch_size, device = settings["epochs"], settings["batch_size"], torch.device(device)
 
     model = make_classifier(num_classes, settings, seed)
     loaded = apply_weights(model, weights, retrain_layers, weights_source) if weights is not None else None
@@ -470,12 +490,7 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
             with _autocast(device, precision):
                 refresh_norm_statistics(model, data.images[order[:NORM_IMAGES]], scaled=data.prescale)
             eval_started = time.perf_counter()
-            for name, (x, y) in evaluated.items():
-                with _autocast(device, precision):
-                    predictions[name] = _predict_classes(model, x, scaled=data.prescale)
-                share = int((predictions[name] == y).sum()) / len(y) if len(y) else math.nan
-                (run.test_accuracy if name is _TEST else run.extra_accuracy[name]).append(share)
-                run.eval_images += len(y)
+            _evaluate(model, evaluated, data.prescale, precision, run, predictions)
             done = time.perf_counter()
             run.train_seconds += norm_started - epoch_started
             run.norm_seconds += eval_started - norm_started
