@@ -1,13 +1,14 @@
 # Two commands do all the set-up on a fresh machine (Python 3.11):
 #   make run    create .venv if missing, then run the whole pipeline (snakemake --cores 2)
-#   make test   create .venv if missing, install Debian's chromium for the report's browser test if missing
-#               (apt-get, as root or through sudo), then run the tests
+#   make test   create .venv if missing, install Debian's chromium for the report's browser test and the
+#               test cluster's SLURM, MariaDB, munge and sshd if missing (apt-get, as root or through sudo), then
+#               run the tests
 PYTHON ?= python3
 VENV := .venv
 STAMP := $(VENV)/.installed
 export PATH := $(CURDIR)/$(VENV)/bin:$(PATH)
 
-.PHONY: run test test-fast env browser clean
+.PHONY: run test test-fast env browser cluster clean
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
@@ -23,10 +24,22 @@ browser:
 	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium >/dev/null \
 	  || echo "warning: could not install chromium; the browser test of the report will be skipped"; }
 
+# The cluster tests (tests/test_cluster.py) start a one-node SLURM with accounting (slurmctld, slurmd, slurmdbd on
+# MariaDB, munge) and an sshd for the DVC remote, all as root under a temporary folder (Debian's packages).
+CLUSTER_PACKAGES := slurm-wlm slurmdbd munge mariadb-server openssh-server
+cluster:
+	@for program in slurmctld slurmd slurmdbd munged mariadbd sshd; do \
+	  command -v $$program >/dev/null 2>&1 || [ -x /usr/sbin/$$program ] || missing=1; done; \
+	[ -z "$$missing" ] || { \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends \
+	    $(CLUSTER_PACKAGES) >/dev/null \
+	  || echo "warning: could not install $(CLUSTER_PACKAGES); the cluster tests will be skipped"; }
+
 run: $(STAMP)
 	snakemake --cores 2
 
-test: $(STAMP) browser
+test: $(STAMP) browser cluster
 	pytest -q
 
 # the fast tier for development: neither the end-to-end workflow runs nor the slow unit tests

@@ -350,7 +350,7 @@ def planned_jobs(text: str) -> list[dict]:
     return jobs
 
 
-def test_slurm_profile_dry_run_plans_parallel_training_jobs_with_gpus(tmp_path):
+def test_slurm_profile_dry_run_plans_parallel_training_jobs(tmp_path):
     params = tiny_params()
     params["translation"]["scope"] = ["all", "denim", "felt"]
     project = make_project(tmp_path / "project", params)
@@ -370,20 +370,20 @@ def test_slurm_profile_dry_run_plans_parallel_training_jobs_with_gpus(tmp_path):
     assert {(j["wildcards"]["direction"], j["wildcards"]["scope"]) for j in training} == {
         (d, s) for d in ("v2t", "t2v") for s in ("all", "denim", "felt")}
     for job in training:
-        assert job["resources"]["gpu"] == "1" and job["resources"]["mem_mb"] == "64000"
-        assert job["resources"]["runtime"] == "720" and job["threads"] == params["translation"]["threads"]
+        assert job["threads"] == params["translation"]["threads"]
         assert not any(i.startswith("models/") for i in job["input"])  # no training job waits for another
     for job in by_rule["generate"]:
-        assert (job["resources"]["gpu"], job["resources"]["mem_mb"], job["resources"]["runtime"]) == ("1", "16000", "120")
         assert {i for i in job["input"] if i.startswith("models/")} == {
             f"models/{job['wildcards']['direction']}/{s}" for s in ("all", "denim", "felt")}
-    expected = {"render": ("4000", "60", 2), "ingest": ("8000", "120", 2), "roi": ("8000", "240", 2),
-                "pairs": ("4000", "30", 1), "score": ("8000", "60", 1), "classify": ("16000", "240", 1),
-                "report": ("4000", "30", 1)}
-    for rule, (mem, runtime, threads) in expected.items():
-        job = by_rule[rule][0]
-        assert (job["resources"]["mem_mb"], job["resources"]["runtime"], job["threads"]) == (mem, runtime, threads)
-        assert "gpu" not in job["resources"]
+    # memory and time as the profile asks for a first attempt (its expressions of Snakemake's `attempt`); no GPU
+    profile = yaml.safe_load((REPO / "workflow/profiles/slurm/config.yaml").read_text())["set-resources"]
+    threads = {"render": 2, "ingest": 2, "roi": 2, "train": params["translation"]["threads"]}
+    for rule, jobs_of_rule in by_rule.items():
+        for job in jobs_of_rule if rule != "all" else []:
+            asked = tuple(str(eval(str(profile[rule][key]), {"attempt": 1})) for key in ("mem_mb", "runtime"))
+            assert (job["resources"]["mem_mb"], job["resources"]["runtime"], job["threads"]) == \
+                (*asked, threads.get(rule, 1)), rule
+            assert "gpu" not in job["resources"]
 
     # what sbatch would be given for a training job, by the plugin's own functions
     from snakemake_executor_plugin_slurm.submit_string import get_submit_command
@@ -402,7 +402,7 @@ def test_default_profile_runs_locally_on_two_cores():
     profile = yaml.safe_load((REPO / "workflow/profiles/default/config.yaml").read_text())
     assert profile["cores"] == 2 and "executor" not in profile
     slurm = yaml.safe_load((REPO / "workflow/profiles/slurm/config.yaml").read_text())
-    assert slurm["executor"] == "slurm" and slurm["set-resources"]["train"]["gpu"] == 1
+    assert slurm["executor"] == "slurm" and "gpu" not in slurm["set-resources"]["train"]  # CPU torch: GPU lines are the site's
 
 
 def test_plain_snakemake_applies_the_default_profile(tmp_path):
