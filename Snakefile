@@ -3,10 +3,12 @@
 # writes dvc.yaml from, so both tools run the same commands on the same inputs and outputs.
 # Each rule's code inputs are the files its stage module imports; params.yaml is the one configuration.
 
+import sys
+
 import yaml
 from vtgen.io.params import validate_params
-from vtgen.pipeline import outputs, snakemake_rule, stages, write_params_records
-from vtgen.io.runlock import hold_run_lock
+from vtgen.pipeline import commit_to_dvc, outputs, reconcile, snakemake_rule, stages, write_params_records
+from vtgen.io.runlock import hold_run_lock, run_in_progress
 
 configfile: "params.yaml"
 
@@ -21,6 +23,12 @@ validate_params(config)
 # each stage's params values as a file among its inputs: a changed value reruns the stage even when
 # its outputs were made by DVC, of which Snakemake's own records know nothing
 write_params_records(config)
+# Snakemake decides by file times; vtgen's content records decide by content, as DVC does: a damaged output or
+# an input whose content changed (below dataset.path too) reruns its job, and outputs whose content matches
+# what made them (after `dvc pull`) are reused. Not in a cluster job, nor while another run holds the lock.
+if workflow.is_main_process and not run_in_progress():
+    for _line in reconcile(config):
+        print(_line, file=sys.stderr)
 
 report: "workflow/report/workflow.rst"
 
@@ -56,3 +64,11 @@ for _stage in stages(config, "main") + stages(config, "studies"):
 # leaves nothing to unlock. Stage commands started by this run inherit the right to run.
 onstart:
     hold_run_lock("snakemake")
+
+
+# Record the finished stages in DVC too (`dvc commit` of those whose outputs match their content records), so
+# that `dvc status` and `dvc repro` agree with this run instead of redoing it; only inside a DVC project.
+onsuccess:
+    _line = commit_to_dvc(config)
+    if _line:
+        print(_line, file=sys.stderr)

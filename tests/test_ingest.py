@@ -1,5 +1,6 @@
 import json
 import re
+import shutil
 import subprocess
 import sys
 
@@ -361,13 +362,14 @@ def test_vt60_described_by_a_pattern_keeps_instances_whole(vt60_root):
 def test_vt60_exact_and_near_duplicates_merge_their_groups(vt60_root, tmp_path):
     # two classes linked file by file; a touch frame of 01_stapler/01 also appears under 01_stapler/02,
     # and a re-encoded copy (PNG, one pixel changed) of a frame of 02_bottleempty/01 under 02_bottleempty/02
+    # (copies, not links: a link that leads outside dataset.path is refused, see test_ingest_reads_only_inside_...)
     root = tmp_path / "vt60"
     for path in sorted(vt60_root.glob("*/0[12]_*/*/*.jpg")):
-        link = root / path.relative_to(vt60_root)
-        link.parent.mkdir(parents=True, exist_ok=True)
-        link.symlink_to(path)
+        copy = root / path.relative_to(vt60_root)
+        copy.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(path, copy)
     stapler = sorted((vt60_root / "touch" / "01_stapler" / "01").glob("*.jpg"))
-    (root / "touch/01_stapler/02/copy.jpg").symlink_to(stapler[0])
+    shutil.copy(stapler[0], root / "touch/01_stapler/02/copy.jpg")
     from PIL import Image
 
     bottle = sorted((vt60_root / "touch" / "02_bottleempty" / "01").glob("*.jpg"))
@@ -509,6 +511,44 @@ def test_user_manifest_lists_the_images(tmp_path):
     pd.DataFrame({"file": ["x/1.png"]}).to_csv(root / "bad.csv", index=False)
     with pytest.raises(IngestError, match=r"bad.csv lacks column\(s\) path, class, modality"):
         ingest_dataset(root, {"source": "manifest", "manifest": "bad.csv"}, progress=False)
+
+
+def test_ingest_reads_only_inside_the_dataset_folder_and_names_what_it_refuses(tmp_path, capsys):
+    """Issue 25: links (files or folders) and manifest rows that resolve outside dataset.path, and names with
+    control characters, are quarantined with the reason; a link that stays inside is read."""
+    outside = write_jpegs(tmp_path / "elsewhere", 4)
+    root = write_jpegs(tmp_path / "raw", 8)
+    (root / "c0" / "visual" / "to_a_file.jpg").symlink_to(outside / "c0" / "visual" / "s00000.jpg")
+    (root / "c9").symlink_to(outside / "c1")
+    (root / "c1" / "visual" / "inside.jpg").symlink_to(root / "c1" / "visual" / "s00001.jpg")
+    shutil.copy(outside / "c0" / "visual" / "s00000.jpg", root / "c0" / "visual" / "two\nlines.jpg")
+    pattern = {"source": "pattern", "pattern": "{class}/{modality}/{name}.jpg"}
+    run_ingest(root, pattern, tmp_path / "out", workers=1)
+    manifest = pd.read_parquet(tmp_path / "out/manifest.parquet")
+    quarantine = pd.read_parquet(tmp_path / "out/quarantine.parquet")
+    reasons = {str(Path(p).relative_to(root)): r for p, r in zip(quarantine["path"], quarantine["reason"])}
+    assert reasons == {
+        "c0/visual/to_a_file.jpg": f"symbolic link to a file outside dataset.path (it resolves to {outside}/c0/visual/"
+                                   f"s00000.jpg): not read; every image a run reads must lie inside dataset.path, so "
+                                   f"that a change to it reruns the run",
+        "c9": f"symbolic link to a folder outside dataset.path (it resolves to {outside}/c1): not read; every image a "
+              f"run reads must lie inside dataset.path, so that a change to it reruns the run",
+        "c0/visual/two\nlines.jpg": "file name contains a control character (a line break, tab or other), which would "
+                                    "reach tile file names and tables; rename it to use it"}
+    assert len(manifest) == 9 and str(root / "c1" / "visual" / "inside.jpg") in set(manifest["path"])
+    assert "quarantined x1: symbolic link to a file outside dataset.path" in capsys.readouterr().out
+
+    pd.DataFrame({"path": ["c0/visual/s00000.jpg", str(outside / "c0/visual/s00000.jpg"), "../elsewhere/c1/visual/s00001.jpg",
+                           "../../../../etc/passwd", "c9/visual/s00001.jpg"],
+                  "modality": ["visual"] * 5, "class": ["c0", "c0", "c1", "c1", "c1"]}).to_csv(root / "files.csv",
+                                                                                            index=False)
+    manifest, quarantine, _ = ingest_dataset(root, {"source": "manifest", "manifest": "files.csv"}, progress=False)
+    assert list(manifest["path"]) == [str(root / "c0/visual/s00000.jpg")]
+    refused = quarantine[quarantine["reason"].str.contains("outside dataset.path")]
+    assert sorted(refused["reason"].str.extract(r"^(files.csv line \d+|symbolic link to a \w+)")[0]) == [
+        "files.csv line 3", "files.csv line 4", "files.csv line 5", "files.csv line 6", "symbolic link to a file",
+        "symbolic link to a folder"]
+    assert quarantine["path"].is_unique  # c9, listed and found by the walk, gives one row
 
 
 def test_fast_decoding_gives_what_read_rgb8_gives(tmp_path):

@@ -252,12 +252,29 @@ def run_stage(args, params) -> None:
 
     started = time.perf_counter()
     with run_lock(f"vtgen {args.stage}"):
+        job, inputs = _declared_job(args, params)
         args.func(args, params)
-    out = Path(args.out)
-    if out.is_dir() and args.stage not in ("report", "studies-report"):  # pages: reports/ holds declared files only
-        record = {"stage": args.stage, "seconds": round(time.perf_counter() - started, 2),
-                  "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), **peak_memory()}
-        (out / "timing.json").write_text(json.dumps(record) + "\n")
+        out = Path(args.out)
+        if out.is_dir() and args.stage not in ("report", "studies-report"):  # pages: reports/ holds declared files only
+            record = {"stage": args.stage, "seconds": round(time.perf_counter() - started, 2),
+                      "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), **peak_memory()}
+            (out / "timing.json").write_text(json.dumps(record) + "\n")
+        if job is not None:
+            from vtgen.pipeline import record_job
+
+            record_job(job, inputs)
+
+
+def _declared_job(args, params):
+    """(the stage-table job this command runs, its input hashes now) when ``--out`` is the job's declared output
+    under the current folder; (None, None) for a command writing elsewhere."""
+    from vtgen.io.contents import Hasher
+    from vtgen.pipeline import input_hashes, job_of_command
+
+    if Path(args.out).is_absolute() or not Path("params.yaml").is_file() or not Path(args.params).samefile("params.yaml"):
+        return None, None
+    job = job_of_command(params, args.stage, args.out)
+    return (job, input_hashes(job, params, Hasher("."))) if job is not None else (None, None)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -16,6 +16,7 @@ appears only in an input means "every value" (for ``{scope}``: the folder holdin
 
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -236,11 +237,14 @@ def dvc_stage(stage: Stage, root: Path) -> dict:
     if stage.params:
         body["params"] = list(stage.params)
     outs = [p for path in stage.outputs for p in _dvc_path(path, own, item)]
-    body["outs"] = outs if stage.pipeline == "main" else [{path: {"cache": False}} for path in outs]
+    # persist: DVC leaves the outputs in place until the command replaces them (atomically), so a `dvc repro`
+    # that the run lock then refuses has removed nothing of the run that holds the lock
+    cached = {} if stage.pipeline == "main" else {"cache": False}
+    body["outs"] = [{path: {**cached, "persist": True}} for path in outs]
     if stage.metrics:
-        body["metrics"] = [{path: {"cache": False}} for path in stage.metrics]
+        body["metrics"] = [{path: {"cache": False, "persist": True}} for path in stage.metrics]
     if stage.plots:
-        body["plots"] = [{path: {"cache": False, **spec}} for path, spec in stage.plots.items()]
+        body["plots"] = [{path: {"cache": False, "persist": True, **spec}} for path, spec in stage.plots.items()]
     if not own:
         return body
     if len(own) == 1:
@@ -352,3 +356,207 @@ def _command_for(template: str):
     def command(wildcards) -> str:
         return template.format(**dict(wildcards.items()))
     return command
+
+
+# ----------------------------------------------------------------------------- content records
+
+@dataclass(frozen=True)
+class Job:
+    """One job of a stage: its DVC-style name (``train@v2t-all``), concrete inputs and outputs."""
+
+    name: str
+    stage: Stage
+    wildcards: dict
+    inputs: tuple[str, ...]   # data inputs, then code files
+    outputs: tuple[str, ...]
+
+    @property
+    def record_dir(self) -> str:
+        """Where the job's content record lives: its first folder output (``reports/figures`` for the report)."""
+        return next(p for p in self.outputs if not Path(p).suffix)
+
+
+def jobs(params: dict, pipeline: str = "main") -> list[Job]:
+    """Every job of ``pipeline`` under ``params``, upstream before downstream."""
+    import itertools
+
+    values = wildcard_values(params)
+    found = []
+    for stage in stages(params, pipeline):
+        own = stage.wildcards()
+        for combination in itertools.product(*(values[name] for name in own)):
+            item = dict(zip(own, combination))
+            rule = snakemake_rule(stage, params)
+            def fill(path: str, item=item) -> str:
+                for key, value in item.items():
+                    path = path.replace("{" + key + "}", value)
+                return path
+            name = stage.name + ("@" + "-".join(combination) if combination else "")
+            found.append(Job(name, stage, item, tuple(fill(p) for p in rule["inputs"][:-1]),
+                             tuple(fill(p) for p in rule["outputs"])))
+    made_by = {out: job for job in found for out in job.outputs}
+    ordered, done = [], set()
+
+    def visit(job: Job) -> None:
+        if job.name in done:
+            return
+        done.add(job.name)
+        for path in job.inputs:
+            upstream = made_by.get(path)
+            if upstream is not None:
+                visit(upstream)
+        ordered.append(job)
+
+    for job in found:
+        visit(job)
+    return ordered
+
+
+def params_text(stage: Stage, params: dict) -> str:
+    """The params values ``stage`` reads, as the text of its params record."""
+    import json
+
+    return json.dumps({key: param_value(params, key) for key in stage.params}, sort_keys=True) + "\n"
+
+
+def input_hashes(job: Job, params: dict, hasher) -> dict[str, str | None]:
+    """Content hash of each input of ``job``, and of the params values it reads (key ``params``)."""
+    import hashlib
+
+    hashes = {path: hasher.hash(path) for path in job.inputs}
+    hashes["params"] = hashlib.md5(params_text(job.stage, params).encode()).hexdigest()
+    return hashes
+
+
+def job_of_command(params: dict, command: str, out: str) -> Job | None:
+    """The main or studies job a stage command writing ``out`` runs, or None when ``out`` is not a declared output."""
+    out = Path(out).as_posix().rstrip("/")
+    for pipeline in ("main", "studies"):
+        for job in jobs(params, pipeline):
+            if job.stage.command.split()[1] == command and out in (job.outputs[0], Path(job.outputs[0]).parent.as_posix()):
+                return job
+    return None
+
+
+def _snakemake_mtime(path: str) -> float | None:
+    """The modification time Snakemake reads for ``path`` (a folder's ``.snakemake_timestamp`` when present)."""
+    try:
+        if os.path.isdir(path) and os.path.exists(os.path.join(path, ".snakemake_timestamp")):
+            return os.stat(os.path.join(path, ".snakemake_timestamp")).st_mtime
+        return os.stat(path).st_mtime
+    except OSError:
+        return None
+
+
+def _set_mtime(paths, ns: int) -> None:
+    for path in paths:
+        for target in (os.path.join(path, ".snakemake_timestamp"), path):
+            if os.path.exists(target):
+                os.utime(target, ns=(ns, ns), follow_symlinks=True)
+
+
+MISSING, UNRECORDED = "an output is missing", "no content record"
+CHANGED = "input "
+STALE_NS = 10**9  # 1970-01-01 00:00:01: older than any input (Snakemake reads a time of 0 as no time at all)
+
+
+def job_problem(job: Job, params: dict, hasher) -> str | None:
+    """None when ``job``'s outputs hold what it wrote and its inputs are what it read (by content); else why not:
+    MISSING, UNRECORDED, or the first damaged output or changed input in words."""
+    from vtgen.io.contents import damage, read_record
+
+    if not all(os.path.exists(p) for p in job.outputs):
+        return MISSING
+    record = read_record(job.record_dir)
+    if record is None:
+        return UNRECORDED
+    problem = damage(record, list(job.outputs), hasher)
+    if problem is None:
+        current = input_hashes(job, params, hasher)
+        changed = sorted(k for k in set(current) | set(record["inputs"]) if current.get(k) != record["inputs"].get(k))
+        if changed:
+            more = f" (and {len(changed) - 1} more)" if len(changed) > 1 else ""
+            problem = f"{CHANGED}{changed[0]} changed since it ran{more}"
+    return problem
+
+
+def commit_to_dvc(params: dict) -> str | None:
+    """Record in DVC (``dvc commit``) every main-job stage whose outputs match their content records, so that
+    ``dvc status`` agrees with the Snakemake run that made them; a line saying what was done, None outside a
+    DVC project."""
+    import shutil
+    import subprocess
+    import time
+
+    from vtgen.io.contents import Hasher
+
+    if not Path(".dvc").is_dir() or shutil.which("dvc") is None:
+        return None
+    started = time.perf_counter()
+    hasher = Hasher(".")
+    current = [job.name for job in jobs(params, "main") if job_problem(job, params, hasher) is None]
+    hasher.save()
+    if not current:
+        return None
+    done = subprocess.run(["dvc", "commit", "--force", "--quiet", *current], capture_output=True, text=True)
+    seconds = time.perf_counter() - started
+    if done.returncode != 0:
+        return (f"vtgen: warning: `dvc commit` of the finished stages failed ({(done.stderr or done.stdout).strip()}); "
+                f"`dvc status` will list them until `dvc commit` succeeds")
+    return f"vtgen: {len(current)} finished stages recorded in DVC's cache (dvc commit, {seconds:.1f} s)"
+
+
+def reconcile(params: dict, root: str | Path = ".") -> list[str]:
+    """Make Snakemake's file times say what the content records say (run at the start of a Snakemake run).
+
+    For each job of the main job, upstream first, whose outputs exist and hold a content record:
+
+    * an output that differs from its record (truncated, edited, a file missing or added), or an input whose
+      content changed since the job ran (a new, replaced or deleted image below ``dataset.path``), makes the
+      job's outputs older than anything (1970), so Snakemake runs it again;
+    * a job whose outputs and inputs match the record but look older than an input (after ``dvc pull`` or
+      ``dvc checkout``, or a rewritten params record) gets its outputs' times set to now, so Snakemake reuses
+      them as DVC does.
+
+    Returns one line per job marked to run again. Outputs without a record (an older vtgen) are left to
+    Snakemake's own rules.
+    """
+    import time
+
+    from vtgen.io.contents import Hasher
+
+    root = Path(root)
+    cwd = os.getcwd()
+    os.chdir(root)
+    lines: list[str] = []
+    rerun: set[str] = set()
+    try:
+        hasher = Hasher(".")
+        stamp = time.time_ns()
+        for job in jobs(params, "main"):
+            problem = job_problem(job, params, hasher)
+            if problem in (MISSING, UNRECORDED):
+                continue
+            if problem is not None:
+                _set_mtime(job.outputs, STALE_NS)
+                if not problem.startswith(CHANGED) or not any(p in rerun for p in job.inputs):  # not "upstream reruns"
+                    lines.append(f"vtgen: {job.name}: {problem}; it runs again")
+                rerun.update(job.outputs)
+                continue
+            newest = max((t for p in (*job.inputs, params_record(job.stage)) if (t := _snakemake_mtime(p))),
+                         default=0)
+            if any((_snakemake_mtime(p) or 0) < newest for p in job.outputs):
+                stamp = max(time.time_ns(), stamp + 1000)
+                _set_mtime(job.outputs, stamp)
+        hasher.save()
+    finally:
+        os.chdir(cwd)
+    return lines
+
+
+def record_job(job: Job, inputs: dict[str, str | None]) -> None:
+    """Write ``job``'s content record (inputs as hashed when it started, outputs as they are now); run from the
+    project root, as both tools run stage commands."""
+    from vtgen.io.contents import Hasher, write_record
+
+    write_record(job.record_dir, job.name, inputs, list(job.outputs), Hasher("."))

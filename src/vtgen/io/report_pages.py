@@ -120,10 +120,24 @@ def environment() -> jinja2.Environment:
     return env
 
 
+def md_text(value) -> str:
+    """A value as Markdown text that cannot open an HTML tag (``<`` and ``>`` as entities), so a class or
+    file name such as ``<img src=x onerror=...>`` is shown, never run, where the Markdown is rendered."""
+    return str(value).replace("<", "&lt;").replace(">", "&gt;")
+
+
+@lru_cache(maxsize=1)
+def markdown_environment() -> jinja2.Environment:
+    """The environment of the ``*.md`` templates: every ``{{ value }}`` passes through :func:`md_text` (the
+    templates' own literal HTML, such as ``<details>``, is kept)."""
+    env = environment().overlay(finalize=md_text)
+    return env
+
+
 def render_page(name: str, context: dict) -> tuple[str, str]:
     """Render ``templates/<name>.html`` and ``templates/<name>.md`` with ``context``; return (html, markdown)."""
-    env = environment()
-    return env.get_template(f"{name}.html").render(context), env.get_template(f"{name}.md").render(context)
+    return (environment().get_template(f"{name}.html").render(context),
+            markdown_environment().get_template(f"{name}.md").render(context))
 
 
 def read_json(path: str | Path) -> dict:

@@ -102,6 +102,19 @@ def hold_run_lock(tool: str, root: str | Path = ".") -> None:
     os.environ[OWNER_ENV] = str(os.getpid())
 
 
+def run_in_progress(root: str | Path = ".") -> bool:
+    """Whether another process holds ``run.lock`` now (a Snakemake or DVC run of this project is going on)."""
+    path = (Path(root) / LOCK_DIR / "run.lock").resolve()
+    if path in _held or not path.exists():
+        return False
+    with open(path) as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+    return False
+
+
 def _release(path: Path) -> None:
     handle = _held.pop(path, None)
     if handle is not None:

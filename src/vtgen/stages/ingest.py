@@ -124,6 +124,19 @@ class Candidate:
 
 
 _NOT_UTF8 = "name is not valid UTF-8 text, so it cannot be recorded; rename it to use it"
+_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+_CONTROL_NAME = ("name contains a control character (a line break, tab or other), which would reach tile file names "
+                 "and tables; rename it to use it")
+
+
+def _inside(path: str | Path, root_real: str) -> bool:
+    """Whether ``path``, links resolved, lies inside the folder whose resolved path is ``root_real``."""
+    return os.path.commonpath([os.path.realpath(path), root_real]) == root_real
+
+
+def _outside_reason(path: str | Path, what: str) -> str:
+    return (f"{what} outside dataset.path (it resolves to {display_path(os.path.realpath(path))}): not read; every "
+            f"image a run reads must lie inside dataset.path, so that a change to it reruns the run")
 
 
 def _quarantine(path, cls, modality, reason) -> dict:
@@ -424,9 +437,11 @@ def _walk(root: Path, quarantined: list[dict]) -> tuple[list[str], list[str], li
     """(files, empty folders, top-level non-folder entries) below ``root``, relative, sorted.
 
     Symbolic links to folders are followed unless they lead back to a folder already being read
-    (a loop), which is quarantined; names that are not UTF-8 are quarantined."""
+    (a loop), which is quarantined; links that resolve outside ``root`` and names that are not UTF-8 or
+    hold control characters are quarantined."""
     files, empty, top = [], [], []
-    seen = {os.path.realpath(root)}
+    root_real = os.path.realpath(root)
+    seen = {root_real}
 
     def visit(folder: Path, rel: str, ancestors: frozenset) -> bool:
         try:
@@ -439,15 +454,21 @@ def _walk(root: Path, quarantined: list[dict]) -> tuple[list[str], list[str], li
             name_rel = f"{rel}/{entry.name}" if rel else entry.name
             if not rel and entry.name.startswith("."):
                 continue  # .dvc, .git and other hidden top-level entries are not data
-            if not is_utf8_path(entry.name):
+            if not is_utf8_path(entry.name) or _CONTROL.search(entry.name):
                 what = "folder" if entry.is_dir() else "file"
-                quarantined.append(_quarantine(entry.path, "", "", f"{what} {_NOT_UTF8}"))
+                problem = _NOT_UTF8 if not is_utf8_path(entry.name) else _CONTROL_NAME
+                quarantined.append(_quarantine(entry.path, "", "", f"{what} {problem}"))
                 found = True
                 continue
             try:
                 is_dir = entry.is_dir()
             except OSError:
                 is_dir = False
+            if entry.is_symlink() and not _inside(entry.path, root_real):
+                what = "symbolic link to a folder" if is_dir else "symbolic link to a file"
+                quarantined.append(_quarantine(entry.path, "", "", _outside_reason(entry.path, what)))
+                found = True
+                continue
             if is_dir:
                 real = os.path.realpath(entry.path)
                 if entry.is_symlink() and (real in ancestors or real in seen):
@@ -534,11 +555,22 @@ def read_user_manifest(root: Path, dataset: dict) -> tuple[list[Candidate], list
                          f"(columns: path, modality, class, and optionally {', '.join(KNOWN_FIELDS[2:])})")
     optional = [c for c in KNOWN_FIELDS if c in table.columns]
     candidates, quarantined, listed = [], [], set()
-    for row in table.astype(str).to_dict("records"):
+    root_real = os.path.realpath(root)
+    csv = table_path.suffix.lower() not in (".parquet", ".pq")
+    for number, row in enumerate(table.astype(str).to_dict("records")):
         rel = row["path"].strip()
         path = Path(rel) if os.path.isabs(rel) else root / rel
         listed.add(os.path.normpath(path))
         values = {c: row[c].strip() for c in optional if row[c].strip() not in ("", "nan", "None")}
+        where = f"{name} {'line' if csv else 'row'} {number + 2 if csv else number + 1}"
+        if not _inside(path, root_real):
+            quarantined.append(_quarantine(path, values.get("class", ""), values.get("modality", ""),
+                                           f"{where}: " + _outside_reason(path, "path")))
+            continue
+        if _CONTROL.search(rel) or any(_CONTROL.search(v) for v in values.values()):
+            quarantined.append(_quarantine(path, values.get("class", ""), values.get("modality", ""),
+                                           f"{where}: {_CONTROL_NAME.replace('name', 'the row', 1)}"))
+            continue
         result = _interpret(values, layout, rel, {}, "", str(path))
         if isinstance(result, str):
             quarantined.append(_quarantine(path, values.get("class", ""), values.get("modality", ""), result))
@@ -547,7 +579,10 @@ def read_user_manifest(root: Path, dataset: dict) -> tuple[list[Candidate], list
                                            f"not an image file (extension '{path.suffix}')"))
         else:
             candidates.append(result)
-    files, _, top = _walk(root, quarantined)
+    walked: list[dict] = []
+    files, _, top = _walk(root, walked)
+    known = {row["path"] for row in quarantined}
+    quarantined += [row for row in walked if row["path"] not in known]  # a listed link outside: one row, not two
     for rel in files:
         if os.path.normpath(root / rel) not in listed and _is_image_name(rel):
             quarantined.append(_quarantine(root / rel, "", "", f"image not listed in the manifest {name}"))
