@@ -39,9 +39,10 @@ def snapshot(folder: Path) -> dict[str, str]:
 
 
 def stable(files: dict[str, str]) -> dict[str, str]:
-    """Leave out what records wall time or dates (summaries, dvclive logs) and checkpoint-format bytes."""
+    """Leave out what records wall time or dates (summaries, dvclive logs, the content record that lists them)
+    and checkpoint-format bytes."""
     return {k: v for k, v in files.items()
-            if Path(k).name not in ("summary.json", "train.json", "generator.pt", "timing.json")
+            if Path(k).name not in ("summary.json", "train.json", "generator.pt", "timing.json", ".contents.json")
             and not k.startswith("dvclive")}
 
 
