@@ -40,8 +40,10 @@ def outputs_snapshot(project: Path) -> dict[str, str]:
 
 
 def deterministic(files: dict[str, str]) -> dict[str, str]:
+    """The files two runs of the same code write byte for byte: data, tiles, pairs and generated images (weights
+    are compared by value; classify, score and the report are compared by their file lists)."""
     return {k: v for k, v in files.items() if Path(k).name not in TIMED and "/dvclive/" not in k
-            and not k.endswith("generator.pt") and not k.startswith("reports/figures")}
+            and not k.endswith("generator.pt") and not k.startswith(("reports/", "data/classify/", "data/scores/"))}
 
 
 def dvc_changed(project: Path) -> dict:
