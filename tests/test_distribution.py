@@ -506,3 +506,73 @@ def test_prdc_agrees_with_the_authors_package():
             theirs = prdc.compute_prdc(real, fake, nearest_k=int(ours["k"]))
         for name in ("precision", "recall", "density", "coverage"):
             assert ours[name] == pytest.approx(float(theirs[name]), abs=1e-12), (name, n_real, n_fake)
+
+
+# --------------------------------------------------------------------------- shared pieces of the score stage (issue 26)
+
+def test_fid_from_grams_equals_fid_and_the_bootstrap_interval_brackets_it():
+    rng = np.random.default_rng(11)
+    x, y = rng.normal(size=(40, 12)), rng.normal(0.3, 1.2, size=(30, 12))
+    assert dist._fid_from_grams(x @ x.T, y @ y.T, x @ y.T) == pytest.approx(dist.fid(x, y), rel=1e-9)
+    low, high = dist.fid_interval(x, y, resamples=200, seed=0)
+    assert low < dist.fid(x, y) < high
+    assert dist.fid_interval(x, y, resamples=200, seed=0) == (low, high)  # seeded
+    assert all(math.isnan(v) for v in dist.fid_interval(x, y, resamples=0))
+    # more images, narrower interval
+    big_x, big_y = rng.normal(size=(400, 12)), rng.normal(0.3, 1.2, size=(300, 12))
+    big_low, big_high = dist.fid_interval(big_x, big_y, resamples=100, seed=0)
+    assert big_high - big_low < (high - low) / 2
+    with pytest.raises(ValueError, match="resamples"):
+        dist.fid_interval(x, y, resamples=1)
+
+
+def test_pairwise_distances_are_exact_for_images_and_features():
+    images = textures(7, size=16)
+    fast = dist.pairwise_distances(images, images[:4])
+    direct = torch.cdist(images.flatten(1).double(), images[:4].flatten(1).double(),
+                         compute_mode="donot_use_mm_for_euclid_dist")
+    assert torch.equal(fast, direct)  # integer pixels: the matrix product is exact
+    assert torch.equal(torch.diagonal(fast[:4]), torch.zeros(4, dtype=torch.float64))  # a copy is at distance 0
+    features = torch.randn(5, 3, dtype=torch.float64)
+    assert torch.allclose(dist.pairwise_distances(features, features[:2]), torch.cdist(features, features[:2]))
+    with pytest.raises(ValueError, match="one dimension"):
+        dist.pairwise_distances(np.zeros((2, 3)), np.zeros((2, 4)))
+
+
+def test_memorisation_from_distances_equals_memorisation():
+    images = textures(20, size=16)
+    g, t, h = images[:6], images[6:14], images[14:]
+    whole = dist.memorisation(g, t, h)
+    parts = dist.memorisation_from_distances(*(dist.pairwise_distances(a, b) for a, b in ((g, t), (g, h), (h, t), (h, h))))
+    assert (parts.rate, parts.reference_rate, parts.nearest_is_train_share, parts.n_train) == \
+        (whole.rate, whole.reference_rate, whole.nearest_is_train_share, 8)
+    copied = dist.memorisation(t[:3].clone(), t, h)
+    assert copied.rate == 1.0
+
+
+def test_diversity_ratio_known_inputs():
+    rng = np.random.default_rng(3)
+    real = rng.normal(size=(60, 8))
+    # identical generated images: no spread at all (mode collapse)
+    collapsed = dist.diversity_ratio(np.repeat(real[:1], 10, axis=0), real, resamples=200)
+    assert collapsed.ratio == 0.0 and collapsed.low == collapsed.high == 0.0 and collapsed.n_generated == 10
+    # generated = a resample of the real images: about 1, and the interval holds 1
+    resample = dist.diversity_ratio(real[rng.integers(0, 60, 60)], real, resamples=500)
+    assert 0.85 < resample.ratio < 1.15 and resample.low < 1.0 < resample.high
+    # half the spread, exactly: the real images shrunk towards their mean
+    half = dist.diversity_ratio(real.mean(0) + 0.5 * (real - real.mean(0)), real, resamples=100)
+    assert half.ratio == pytest.approx(0.5, rel=1e-12)
+    assert math.isnan(dist.diversity_ratio(real[:3], np.zeros((4, 8)), resamples=10).ratio)  # real without spread
+    with pytest.raises(ValueError, match="at least 2 images per set"):
+        dist.diversity_ratio(real[:1], real)
+
+
+def test_grey_pixels_and_median_interval():
+    images = torch.zeros(2, 3, 128, 128, dtype=torch.uint8)
+    images[:, 0] = 100  # red only: luma 0.299 * 100
+    grey = dist.grey_pixels(images)
+    assert grey.shape == (2, 64 * 64) and torch.allclose(grey, torch.full_like(grey, 29.9))
+    median, low, high = dist.median_interval([0.1, 0.2, 0.3, 0.4, 5.0], resamples=500)
+    assert median == 0.3 and low <= median <= high and high <= 5.0
+    assert dist.median_interval([0.7]) == (0.7, 0.7, 0.7)
+    assert all(math.isnan(v) for v in dist.median_interval([math.nan]))

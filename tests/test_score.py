@@ -206,7 +206,7 @@ def test_memorisation_warning_says_when_a_class_trained_on_one_group(groups_per_
     """Generated images that copy the training images are flagged; where a class has a single training
     group (vt60: one object instance per class), the warning says the check cannot tell copying from
     learning the class."""
-    from vtgen.stages.score import ONE_GROUP_CAVEAT, memorisation_direction, verdicts
+    from vtgen.stages.score import ONE_GROUP_CAVEAT, FeatureCache, memorisation_direction, verdicts
 
     rng = np.random.default_rng(0)
     classes = np.array(["a"] * 4 + ["b"] * 4)
@@ -215,8 +215,7 @@ def test_memorisation_warning_says_when_a_class_trained_on_one_group(groups_per_
     groups = np.array([f"{c}/{i % groups_per_class}" for i, c in enumerate(classes)])
     sets = {("generated", "all"): (train.clone(), classes, groups), "real_train": (train, classes, groups),
             "real_test": (held, classes, np.array([f"{c}/test" for c in classes]))}
-    encoded = {k: {"pixels": v[0]} for k, v in sets.items()}
-    table = memorisation_direction("t2v", sets, encoded)
+    table = memorisation_direction("t2v", sets, FeatureCache({}))
     assert set(table.loc[table["class"] == "a", "train_groups"]) == {groups_per_class}
     assert set(table.loc[table["class"] == "(all)", "train_groups"]) == {groups_per_class}
     distribution = pd.DataFrame([{"direction": "t2v", "scope": "all", "class": "(all)", "candidate": "generated",
@@ -225,3 +224,49 @@ def test_memorisation_warning_says_when_a_class_trained_on_one_group(groups_per_
     (found,) = [v for v in verdicts(distribution, table) if v["metric"] == "memorisation" and v["view"] == "pixels"]
     assert found["status"] == "warning" and found["generated"] == 1.0
     assert found["text"].endswith(ONE_GROUP_CAVEAT) == (groups_per_class == 1)
+
+
+def test_goal_numbers_have_intervals_and_expose_collapse(tmp_path, monkeypatch, params):
+    """Issue 24's numbers in summary.json: a perfect translator (its outputs are the real test images)
+    has diversity ratio exactly 1; outputs that are one image per class have ratio 0."""
+    write_layout(tmp_path, aligned=True, perfect=True)
+    monkeypatch.chdir(tmp_path)
+    summary = run_score(params, "data/pairs", "data/generated", "data/scores")
+    for direction in ("v2t", "t2v"):
+        goals = summary["goals"][direction]
+        assert goals["diversity_pixels"]["value"] == pytest.approx(1.0, abs=1e-12)
+        assert goals["diversity_pixels"]["classes"] == 2
+        memorisation = goals["memorisation_pixels"]  # no classifier here: the pixel view
+        assert {"generated", "real_heldout"} <= set(memorisation)
+        assert memorisation["generated"]["low"] <= memorisation["generated"]["value"] <= memorisation["generated"]["high"]
+    table = pd.read_csv("data/scores/diversity.csv")
+    assert set(table["class"]) == set(CLASSES) | {"(median)"} and (table["n"] == 3).sum() == 4  # 3 per class
+
+    # collapse: every output of a class is the same image
+    generated = pd.read_parquet("data/generated/t2v/generated.parquet")
+    for _, rows in generated.groupby("class"):
+        first = np.asarray(Image.open(rows["output_path"].iloc[0]))
+        for path in rows["output_path"]:
+            Image.fromarray(first).save(path)
+    summary = run_score(params, "data/pairs", "data/generated", "data/scores")
+    collapsed = summary["goals"]["t2v"]["diversity_pixels"]
+    assert collapsed["value"] == 0.0 and collapsed["high"] == 0.0
+    assert summary["goals"]["v2t"]["diversity_pixels"]["value"] == pytest.approx(1.0, abs=1e-12)
+
+
+def test_feature_cache_encodes_each_distinct_image_once():
+    from vtgen.core.distribution import RandomEncoder, image_features
+    from vtgen.stages.score import FeatureCache
+
+    rng = np.random.default_rng(0)
+    images = torch.from_numpy(rng.integers(0, 255, (5, 3, 16, 16), dtype=np.uint8))
+    repeated = images[[0, 1, 0, 2, 1]]
+    cache = FeatureCache({"random": RandomEncoder()})
+    features = cache("random", repeated)
+    assert cache.encoded["random"] == 3
+    # float32 convolutions round differently with the batch's make-up, hence a tolerance, not equality
+    assert torch.allclose(features, image_features(RandomEncoder(), repeated), rtol=1e-5, atol=1e-7)
+    assert torch.equal(features[2], features[0])  # a repeated image gets its stored features
+    subset = cache("random", images, rows=np.array([4, 2]))
+    assert torch.allclose(subset, image_features(RandomEncoder(), images[[4, 2]]), rtol=1e-5, atol=1e-7)
+    assert cache.encoded["random"] == 4  # only image 4 was new

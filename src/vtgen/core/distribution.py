@@ -44,8 +44,10 @@ from vtgen.core.spectrum import log_radial_profiles, LUMA, QUANTISATION_PSD
 __all__ = [
     "RANDOM_ENCODER_SEED", "RANDOM_ENCODER_CHANNELS", "BLUR_FRACTION", "QUANTISATION_PSD",
     "RandomEncoder", "PenultimateFeatures", "classifier_encoder", "image_features",
-    "kid", "fid", "radial_power_spectrum", "spectrum_distance",
+    "kid", "fid", "fid_interval", "radial_power_spectrum", "spectrum_distance", "log_spectra",
     "TwoSampleResult", "two_sample_test", "prdc_scores", "MemorisationResult", "memorisation",
+    "memorisation_from_distances", "pairwise_distances", "DiversityResult", "diversity_ratio", "grey_pixels",
+    "median_interval",
     "gaussian_blur", "default_blur_sigma", "flat_colour_set", "mean_image_set",
 ]
 
@@ -279,6 +281,49 @@ def fid(real, fake) -> float:
     return max(float(value), 0.0)
 
 
+def _fid_from_grams(g_xx: np.ndarray, g_yy: np.ndarray, g_xy: np.ndarray) -> float:
+    """FID of two sets given their uncentred Gram matrices X X^T, Y Y^T and X Y^T (float64 numpy):
+    |mu_x - mu_y|^2 from the Gram means, Tr S from the diagonals, and Tr (S_x S_y)^(1/2) as the nuclear
+    norm of the doubly centred cross Gram (the form of :func:`fid`), so no D-sized matrix is formed."""
+    n, m = g_xy.shape
+    mean_xx, mean_yy, mean_xy = g_xx.mean(), g_yy.mean(), g_xy.mean()
+    centred = g_xy - g_xy.mean(axis=1, keepdims=True) - g_xy.mean(axis=0, keepdims=True) + mean_xy
+    cross = np.linalg.svd(centred, compute_uv=False).sum() / math.sqrt((n - 1) * (m - 1))
+    trace_x = (np.trace(g_xx) - n * mean_xx) / (n - 1)
+    trace_y = (np.trace(g_yy) - m * mean_yy) / (m - 1)
+    return max(float(mean_xx + mean_yy - 2 * mean_xy + trace_x + trace_y - 2 * cross), 0.0)
+
+
+def fid_interval(real, fake, resamples: int = 50, seed: int = 0, level: float = 0.95) -> tuple[float, float]:
+    """Percentile bootstrap interval of :func:`fid` over images: each of ``resamples`` draws resamples
+    both sets with replacement (numpy generator seeded with ``seed``) and recomputes the FID from the
+    sets' Gram matrices (:func:`_fid_from_grams`, one SVD of an n_real x n_fake matrix per draw).
+
+    A resample repeats images, so it holds fewer distinct ones, and FID grows as n shrinks: the draws
+    sit above the FID of the sets themselves (by 15% at n = 30-40, D = 12, in the tests). The
+    interval is therefore bias-corrected: the draws are shifted by the bootstrap's estimate of that
+    bias (their mean minus the FID of the sets) before their percentiles are taken, so it brackets
+    the estimate and has the spread of the draws. Needs at least 2 rows per set and ``resamples`` >= 2
+    (ValueError); (nan, nan) when ``resamples`` is 0.
+    """
+    x, y = _pair(real, fake, 2, "FID")
+    if isinstance(resamples, bool) or not isinstance(resamples, int) or resamples < 0 or resamples == 1:
+        raise ValueError(f"FID resamples must be 0 or an integer >= 2, got {resamples!r}")
+    if resamples == 0:
+        return math.nan, math.nan
+    xs, ys = x.numpy(), y.numpy()
+    g_xx, g_yy, g_xy = xs @ xs.T, ys @ ys.T, xs @ ys.T
+    rng = np.random.default_rng(seed)
+    draws = np.empty(resamples)
+    for b in range(resamples):
+        i, j = rng.integers(0, len(xs), len(xs)), rng.integers(0, len(ys), len(ys))
+        draws[b] = _fid_from_grams(g_xx[np.ix_(i, i)], g_yy[np.ix_(j, j)], g_xy[np.ix_(i, j)])
+    draws -= draws.mean() - _fid_from_grams(g_xx, g_yy, g_xy)
+    tail = (1 - level) / 2
+    low, high = np.quantile(draws, [tail, 1 - tail])
+    return max(float(low), 0.0), max(float(high), 0.0)
+
+
 # --------------------------------------------------------------------------- power spectrum
 
 def _grey(images: torch.Tensor) -> np.ndarray:
@@ -297,6 +342,12 @@ def _log_spectra(images: torch.Tensor) -> np.ndarray:
     if n == 0:
         raise ValueError("the power spectrum needs at least 1 image, got 0")
     return log_radial_profiles(torch.from_numpy(_grey(images))).numpy()
+
+
+def log_spectra(images: torch.Tensor) -> np.ndarray:
+    """Per-image profiles N x (S // 2) of :func:`radial_power_spectrum`, which is their mean over the images
+    (so a caller can compute each image's profile once and average any subset)."""
+    return _log_spectra(images)
 
 
 def radial_power_spectrum(images: torch.Tensor) -> np.ndarray:
@@ -488,12 +539,35 @@ def _distances(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.cdist(a, b, compute_mode="donot_use_mm_for_euclid_dist")  # exact: a copy is at distance 0
 
 
+def pairwise_distances(a, b) -> torch.Tensor:
+    """Euclidean distances (float64 ``N x M``) between the rows of ``a`` and ``b``: features ``N x D``
+    (tensors or arrays), or images ``N x C x H x W`` (flattened to pixels).
+
+    Exact in both cases, so a copy is at distance 0: uint8 images go through the matrix product
+    |a|^2 + |b|^2 - 2 a.b in float64, whose terms are integers below 2^53 (at most 255^2 per pixel,
+    exact up to 1.3e11 pixels), 10-100x faster than a direct difference at image dimensions; features
+    through torch's direct difference (``donot_use_mm_for_euclid_dist``). ValueError when the
+    dimensions differ or a set is empty.
+    """
+    if all(isinstance(v, torch.Tensor) and v.dtype == torch.uint8 and v.ndim == 4 for v in (a, b)):
+        x, y = (v.reshape(len(v), -1).to(torch.float64) for v in (a, b))
+        if not len(x) or not len(y) or x.shape[1] != y.shape[1]:
+            raise ValueError(f"pairwise_distances needs non-empty image sets of one size, got {tuple(a.shape)} "
+                             f"and {tuple(b.shape)}")
+        squared = x.square().sum(1)[:, None] + y.square().sum(1)[None, :] - 2 * (x @ y.T)
+        return squared.clamp_min_(0).sqrt_()
+    x, y = _rows(a, "a"), _rows(b, "b")
+    if x.shape[1] != y.shape[1]:
+        raise ValueError(f"pairwise_distances needs one dimension D, got {x.shape[1]} and {y.shape[1]}")
+    return _distances(x, y)
+
+
 def memorisation(generated, train, heldout) -> MemorisationResult:
     """Are generated images closer to the training images than real images the generator never saw?
 
     Inputs are ``N x D`` features (or images, ``N x C x H x W``, flattened to pixels); Euclidean
-    distances. d_T(z) is the distance from z to its nearest training image, d_H(z) to its
-    nearest held-out real image.
+    distances (:func:`pairwise_distances`). d_T(z) is the distance from z to its nearest training
+    image, d_H(z) to its nearest held-out real image.
 
     * ``rate``: share of generated g with d_T(g) < ``threshold`` = min over held-out h of d_T(h),
       i.e. closer to the training set than any held-out real image is. ``reference_rate``: the
@@ -511,30 +585,138 @@ def memorisation(generated, train, heldout) -> MemorisationResult:
     which makes the threshold 0). With 1 held-out image the leave-one-out references are NaN.
     Needs at least one row in each set and one dimension D (ValueError).
     """
-    g = _rows(generated, "generated")
-    t = _rows(train, "train")
-    h = _rows(heldout, "heldout")
-    if not g.shape[1] == t.shape[1] == h.shape[1]:
-        raise ValueError(f"the memorisation check needs one dimension D, got {g.shape[1]} (generated), "
-                         f"{t.shape[1]} (train), {h.shape[1]} (heldout)")
-    g_train = _distances(g, t).min(dim=1).values
-    g_held = _distances(g, h).min(dim=1).values
-    h_train = _distances(h, t).min(dim=1).values
+    def rows(values, name):
+        if isinstance(values, torch.Tensor) and values.dtype == torch.uint8 and values.ndim == 4 and len(values):
+            return values  # uint8 images: pairwise_distances takes the exact integer route
+        return _rows(values, name)
+
+    g, t, h = rows(generated, "generated"), rows(train, "train"), rows(heldout, "heldout")
+    dims = [math.prod(v.shape[1:]) for v in (g, t, h)]
+    if len(set(dims)) > 1:
+        raise ValueError(f"the memorisation check needs one dimension D, got {dims[0]} (generated), "
+                         f"{dims[1]} (train), {dims[2]} (heldout)")
+    if len({v.dtype for v in (g, t, h)}) > 1:  # images beside features: compare all as float64 rows
+        g, t, h = _rows(g, "generated"), _rows(t, "train"), _rows(h, "heldout")
+    return memorisation_from_distances(pairwise_distances(g, t), pairwise_distances(g, h),
+                                       pairwise_distances(h, t), pairwise_distances(h, h))
+
+
+def memorisation_from_distances(g_train, g_held, h_train, h_held) -> MemorisationResult:
+    """:func:`memorisation` from its four distance matrices (generated x train, generated x held-out,
+    held-out x train, held-out x held-out; the diagonal of the last is ignored), so that a caller can
+    compute them once for a whole set and pass the blocks of each class."""
+    if min(g_train.shape[0], g_train.shape[1], h_train.shape[0]) == 0:
+        raise ValueError("the memorisation check needs at least one generated, train and held-out image")
+    n_train = int(g_train.shape[1])
+    g_train = g_train.min(dim=1).values
+    g_held = g_held.min(dim=1).values
+    h_train = h_train.min(dim=1).values
     threshold = float(h_train.min())
     rate = float((g_train < threshold).double().mean())
     share = float((g_train < g_held).double().mean())
-    n_h = len(h)
+    n_h = len(h_train)
     if n_h > 1:
         others = h_train.repeat(n_h, 1)
         others.fill_diagonal_(math.inf)
         reference_rate = float((h_train < others.min(dim=1).values).double().mean())
-        h_h = _distances(h, h)
+        h_h = h_held.clone()
         h_h.fill_diagonal_(math.inf)
         reference_share = float((h_train < h_h.min(dim=1).values).double().mean())
     else:
         reference_rate = reference_share = math.nan
-    return MemorisationResult(rate, reference_rate, share, reference_share, threshold, len(g), len(t), n_h,
+    return MemorisationResult(rate, reference_rate, share, reference_share, threshold, len(g_train), n_train, n_h,
                               g_train.numpy(), g_held.numpy())
+
+
+# --------------------------------------------------------------------------- diversity
+
+DIVERSITY_SIDE = 64  # the pixel view of the diversity ratio: greyscale at 64 x 64
+
+
+def grey_pixels(images: torch.Tensor, side: int = DIVERSITY_SIDE) -> torch.Tensor:
+    """uint8 ``N x 3 x H x W`` -> float64 ``N x side^2``: BT.601 luma in grey levels [0, 255], resized
+    to ``side`` x ``side`` (area average) when the images have another size."""
+    _check_images(images, "images")
+    grey = torch.einsum("nchw,c->nhw", images.to(torch.float64), torch.tensor(LUMA, dtype=torch.float64))
+    if grey.shape[-2:] != (side, side):
+        grey = F.interpolate(grey[:, None], size=(side, side), mode="area")[:, 0]
+    return grey.reshape(len(images), -1)
+
+
+@dataclass(frozen=True)
+class DiversityResult:
+    """Within-set spread of generated and real images and their ratio with a 95% bootstrap interval; see :func:`diversity_ratio`."""
+
+    ratio: float
+    low: float
+    high: float
+    generated_spread: float
+    real_spread: float
+    n_generated: int
+    n_real: int
+
+
+def _mean_off_diagonal(distances: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Mean of distances[index_p, index_q] over the pairs p != q whose draws are distinct images, per row
+    of ``index`` (B x n draws); NaN where no such pair exists."""
+    block = distances[index[:, :, None], index[:, None, :]]
+    distinct = index[:, :, None] != index[:, None, :]
+    counts = distinct.sum(axis=(1, 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(counts > 0, (block * distinct).sum(axis=(1, 2)) / np.maximum(counts, 1), np.nan)
+
+
+def diversity_ratio(generated, real, resamples: int = 1000, seed: int = 0, level: float = 0.95) -> DiversityResult:
+    """Within-class diversity of generated images against real ones: mean pairwise distance among
+    ``generated`` over the mean pairwise distance among ``real`` (Euclidean, features ``N x D``, or
+    images, whose pixels are compared as given: pass :func:`grey_pixels` for the 64 px grey view).
+
+    1 when the generated images spread as much as real ones (a resample of the real set gives about
+    1), 0 when they are all one image (mode collapse: a generator that ignores its input). The
+    interval is a percentile bootstrap over images: both sets are resampled with replacement
+    (``resamples`` draws, numpy generator seeded with ``seed``), and a draw's spread averages the pairs
+    of distinct images only, so repeated draws of one image do not count as zero distances. Needs at
+    least 2 rows per set (ValueError); the ratio is NaN when every real image is the same.
+    """
+    x, y = _as_features(generated, "generated", 2, "the diversity ratio"), _as_features(real, "real", 2, "the diversity ratio")
+    if x.shape[1] != y.shape[1]:
+        raise ValueError(f"the diversity ratio needs one dimension D, got {x.shape[1]} and {y.shape[1]}")
+    d_g, d_r = _distances(x, x).numpy(), _distances(y, y).numpy()
+    spread_g = float(d_g[~np.eye(len(x), dtype=bool)].mean())
+    spread_r = float(d_r[~np.eye(len(y), dtype=bool)].mean())
+    ratio = spread_g / spread_r if spread_r > 0 else math.nan
+    low = high = math.nan
+    if resamples and spread_r > 0:
+        rng = np.random.default_rng(seed)
+        draws = []
+        for chunk in range(0, int(resamples), 100):  # chunks keep the B x n x n blocks small
+            count = min(100, int(resamples) - chunk)
+            g = _mean_off_diagonal(d_g, rng.integers(0, len(x), (count, len(x))))
+            r = _mean_off_diagonal(d_r, rng.integers(0, len(y), (count, len(y))))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                draws.append(np.where(r > 0, g / r, np.nan))
+        draws = np.concatenate(draws)
+        draws = draws[np.isfinite(draws)]
+        if len(draws):
+            tail = (1 - level) / 2
+            low, high = (float(v) for v in np.quantile(draws, [tail, 1 - tail]))
+    return DiversityResult(ratio, low, high, spread_g, spread_r, len(x), len(y))
+
+
+def median_interval(values, resamples: int = 1000, seed: int = 0, level: float = 0.95) -> tuple[float, float, float]:
+    """(median, low, high) of ``values`` (e.g. one ratio per class; NaN ignored) with a percentile bootstrap
+    interval over the values (resampled with replacement); NaNs when none is finite, (m, m, m) for one."""
+    values = np.asarray(values, dtype=np.float64)
+    values = values[np.isfinite(values)]
+    if len(values) == 0:
+        return math.nan, math.nan, math.nan
+    median = float(np.median(values))
+    if len(values) == 1:
+        return median, median, median
+    draws = np.median(values[np.random.default_rng(seed).integers(0, len(values), (resamples, len(values)))], axis=1)
+    tail = (1 - level) / 2
+    low, high = np.quantile(draws, [tail, 1 - tail])
+    return median, float(low), float(high)
 
 
 # --------------------------------------------------------------------------- baselines

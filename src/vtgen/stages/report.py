@@ -457,8 +457,10 @@ def classify_headline(entry: dict) -> dict:
 def headline_metrics(data: dict) -> dict:
     """The numbers for ``dvc metrics``: SSIM levels and distribution metrics per direction, accuracy per
     modality and counts; no timings, dates, versions or paths."""
+    goals = data["score_summary"].get("goals") or {}  # issue 24's numbers, each with its interval and n
     metrics = {d: _compact(ssim_headline(data["by_class"], d)
-                           | distribution_headline(data["distribution"], data["memorisation"], d))
+                           | distribution_headline(data["distribution"], data["memorisation"], d)
+                           | {"goals": goals.get(d) or {}})
                for d in DIRECTIONS}
     metrics = _compact(metrics)
     metrics["classify"] = _compact({m: classify_headline(e) for m, e in data["classify"].items()})

@@ -39,6 +39,7 @@ training targets with that of real held-out images (classifier features and pixe
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import time
@@ -53,6 +54,7 @@ from vtgen.io.tables import GENERATED_COLUMNS
 from vtgen.io.images import atomic_output_dir
 from vtgen.io.tables import read_table
 from vtgen.core import distribution as dist
+from vtgen.core.classifier import wilson_interval
 from vtgen.core.metrics import bootstrap_interval, colour_ssim, grey_ssim, pairwise_colour_ssim, psnr
 from vtgen.io.classifiers import load_classifier
 from vtgen.core.domain import DIRECTIONS
@@ -67,8 +69,10 @@ SCORE_COLUMNS = ["direction", "scope", "candidate", "class", "image", "group", "
 INTERVAL_METRICS = ["colour_ssim", "grey_ssim", "psnr", "set_colour_ssim", "nearest_real_colour_ssim"]
 DISTRIBUTION_COLUMNS = ["direction", "scope", "class", "candidate", "view", "metric", "value", "low", "high",
                         "n", "n_reference"]
-MEMORISATION_COLUMNS = ["direction", "class", "view", "candidate", "rate", "nearest_is_train_share", "n", "n_train",
-                        "train_groups"]
+MEMORISATION_COLUMNS = ["direction", "class", "view", "candidate", "rate", "rate_low", "rate_high",
+                        "nearest_is_train_share", "n", "n_train", "train_groups"]
+DIVERSITY_COLUMNS = ["direction", "class", "view", "ratio", "low", "high", "generated_spread", "real_spread", "n",
+                     "n_real", "interval"]
 # a warning's reading where some class trained on one split group: copying and learning the class look alike there
 ONE_GROUP_CAVEAT = ("; at least one class has a single training group (one instance or session), so a generator that "
                     "learns that class can only reproduce that group's look, and held-out real images come from "
@@ -138,12 +142,34 @@ def reference_candidates(test_inputs: torch.Tensor, test_classes: np.ndarray, tr
     return {"nearest_neighbour": nearest, "mean_image": mean_image, "flat_mean_colour": flat}
 
 
+def _cached_set_scores(candidates: np.ndarray, reals: np.ndarray, batch_size: int,
+                       cache: dict | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`set_scores`, each distinct candidate image computed once: ``cache`` maps an image's key
+    (:func:`image_keys`) to its (mean, best, best index) against these ``reals`` (one cache per reals)."""
+    if cache is None:
+        return set_scores(candidates, reals, batch_size)
+    keys = [hashlib.blake2b(c.tobytes(), digest_size=16).digest() for c in candidates]
+    missing: dict = {}
+    for i, key in enumerate(keys):
+        if key not in cache and key not in missing:
+            missing[key] = i
+    if missing:
+        values = set_scores(np.ascontiguousarray(candidates[list(missing.values())]), reals, batch_size)
+        cache.update((key, (values[0][j], values[1][j], values[2][j])) for j, key in enumerate(missing))
+    mean, best, index = zip(*(cache[key] for key in keys)) if keys else ((), (), ())
+    return np.array(mean, dtype=np.float64), np.array(best, dtype=np.float64), np.array(index, dtype=np.int64)
+
+
 def score_candidates(direction: str, scope: str, candidate: str, images: torch.Tensor, classes: np.ndarray,
                      names: list[str], groups: list[str], truth_paths: list[str],
-                     real_test: dict[str, tuple[np.ndarray, list[str]]], size: int, batch_size: int) -> pd.DataFrame:
+                     real_test: dict[str, tuple[np.ndarray, list[str]]], size: int, batch_size: int,
+                     ssim_cache: dict | None = None) -> pd.DataFrame:
     """Score one candidate set of a direction: aligned where a ground truth is listed, and set-to-set
     and nearest-real against ``real_test`` ({class: (images N x S x S x 3, paths)}). ``groups`` are the
-    test groups the images come from (the unit of the bootstrap intervals)."""
+    test groups the images come from (the unit of the bootstrap intervals). ``ssim_cache`` ({class: {}},
+    shared by the candidates of one direction) computes each distinct image's set-to-set scores once:
+    the nearest-neighbour outputs are training tiles ``real_train`` also scores, and the mean and flat
+    baselines repeat one image per class."""
     table = pd.DataFrame({"direction": direction, "scope": scope, "candidate": candidate, "class": classes,
                           "image": names, "group": groups, "ground_truth_path": truth_paths})
     for metric in ALIGNED_METRICS + SET_METRICS:
@@ -160,7 +186,8 @@ def score_candidates(direction: str, scope: str, candidate: str, images: torch.T
         if name not in real_test:
             continue
         reals, real_paths = real_test[name]
-        mean, best, best_index = set_scores(pixels[rows], reals, batch_size)
+        mean, best, best_index = _cached_set_scores(
+            pixels[rows], reals, batch_size, None if ssim_cache is None else ssim_cache.setdefault(name, {}))
         table.loc[rows, "set_colour_ssim"] = mean
         table.loc[rows, "nearest_real_colour_ssim"] = best
         table.loc[rows, "nearest_real_path"] = [real_paths[i] for i in best_index]
@@ -187,14 +214,14 @@ def score_direction(direction: str, generated: pd.DataFrame, splits: pd.DataFram
     for name in sorted(set(test_rows["class"])):
         rows_of = (test_rows["class"] == name).to_numpy()
         real_test[name] = (_channels_last(test_images[torch.tensor(rows_of)]), list(test_rows["path"][rows_of]))
-    tables = []
+    tables, ssim_cache = [], {}
     for scope, rows in test.groupby("scope", sort=True):
         images, classes = read_tiles(list(rows["output_path"]), size), rows["class"].to_numpy()
         groups = [group_of.get(p, p) for p in rows["input_path"]]
         sets[("generated", scope)] = (images, classes, np.array(groups))
         tables.append(score_candidates(
             direction, scope, "generated", images, classes, list(rows["output_path"]), groups,
-            list(rows["ground_truth_path"].fillna("")), real_test, size, batch_size))
+            list(rows["ground_truth_path"].fillna("")), real_test, size, batch_size, ssim_cache))
 
     inputs = test.drop_duplicates("input_path")
     train_pairs = pairs[pairs["split"] == "train"].sort_values("input_path")
@@ -208,14 +235,15 @@ def score_direction(direction: str, generated: pd.DataFrame, splits: pd.DataFram
         sets[(candidate, "-")] = (images, inputs["class"].to_numpy(), np.array(input_groups))
         tables.append(score_candidates(direction, "-", candidate, images, inputs["class"].to_numpy(), names,
                                        input_groups, list(inputs["ground_truth_path"].fillna("")), real_test, size,
-                                       batch_size))
+                                       batch_size, ssim_cache))
 
     real_train = real[(real["split"] == "train") & real["class"].isin(set(inputs["class"]))].sort_values("path")
     train_images = read_tiles(list(real_train["path"]), size)
     sets["real_train"] = (train_images, real_train["class"].to_numpy(), real_train["group"].to_numpy())
     tables.append(score_candidates(
         direction, "-", "real_train", train_images, real_train["class"].to_numpy(),
-        list(real_train["path"]), list(real_train["group"]), [""] * len(real_train), real_test, size, batch_size))
+        list(real_train["path"]), list(real_train["group"]), [""] * len(real_train), real_test, size, batch_size,
+        ssim_cache))
     return pd.concat(tables, ignore_index=True)
 
 
@@ -283,10 +311,68 @@ def _subsample(count: int, limit: int, rng: np.random.Generator) -> np.ndarray:
     return np.arange(count) if count <= limit else np.sort(rng.choice(count, size=limit, replace=False))
 
 
-def _set_metrics(reference: dict, candidate: dict) -> dict[tuple[str, str], tuple[float, float, float]]:
+def image_keys(images: torch.Tensor) -> list[bytes]:
+    """One key per image: a BLAKE2b digest of its bytes, so equal images share a key."""
+    array = images.contiguous().numpy()
+    return [hashlib.blake2b(a.tobytes(), digest_size=16).digest() for a in array]
+
+
+class FeatureCache:
+    """Features of each distinct image, computed once per view and reused by every candidate set, class
+    and metric of a direction (issue 26).
+
+    Views: every encoder of ``encoders`` (``classifier``, ``random``), ``spectrum`` (each image's log radial
+    power profile, :func:`vtgen.core.distribution.log_spectra`) and ``grey`` (64 px grey pixels, the
+    diversity ratio's pixel view). Images are keyed by their bytes (:func:`image_keys`), so the
+    nearest-neighbour outputs (training tiles that ``real_train`` also holds) and the one mean image
+    a class repeats are encoded once. ``encoded`` counts the images each view computed."""
+
+    def __init__(self, encoders: dict):
+        self.encoders = encoders
+        self.views = [*encoders, "spectrum", "grey"]
+        self.store: dict = {view: {} for view in self.views}
+        self.encoded = dict.fromkeys(self.views, 0)
+
+    def _compute(self, view: str, images: torch.Tensor) -> torch.Tensor:
+        if view == "spectrum":
+            return torch.from_numpy(dist.log_spectra(images))
+        if view == "grey":
+            return dist.grey_pixels(images)
+        return dist.image_features(self.encoders[view], images)
+
+    def __call__(self, view: str, images: torch.Tensor, keys: list[bytes] | None = None,
+                 rows: np.ndarray | None = None) -> torch.Tensor:
+        """Float64 ``N x D`` features in ``view`` of ``images`` (of ``images[rows]`` when ``rows`` is given);
+        ``keys``: the :func:`image_keys` of all of ``images``, if known. Images not seen before are encoded
+        together, in one batched pass."""
+        keys = image_keys(images) if keys is None else keys
+        rows = np.arange(len(images)) if rows is None else np.asarray(rows, dtype=np.int64)
+        store, missing = self.store[view], {}
+        for i in rows:
+            key = keys[i]
+            if key not in store and key not in missing:
+                missing[key] = int(i)
+        if missing:
+            values = self._compute(view, images[torch.tensor(list(missing.values()), dtype=torch.long)])
+            store.update(zip(missing, values))
+            self.encoded[view] += len(missing)
+        if len(rows) == 0:
+            return torch.empty(0, 0, dtype=torch.float64)
+        return torch.stack([store[keys[i]] for i in rows])
+
+
+def _interval_from_share(value: float, count: int) -> tuple[float, float]:
+    return wilson_interval(value, count) if count > 0 and not math.isnan(value) else (math.nan, math.nan)
+
+
+def _set_metrics(reference: dict, candidate: dict, fid_resamples: int,
+                 seed: int) -> dict[tuple[str, str], tuple[float, float, float]]:
     """{(view, metric): (value, low, high)} of one candidate set against the reference set; ``reference`` and
-    ``candidate`` map a view name to features (``pixels`` to uint8 images). A metric that cannot be
-    computed for these sets (too few images) is NaN."""
+    ``candidate`` map a view name to features (``spectrum`` to per-image log spectrum profiles). A metric
+    that cannot be computed for these sets (too few images) is NaN. Intervals: KID mean +- 1.96 std over
+    subsets, FID a bootstrap over images (``fid_resamples`` draws), two-sample accuracy, precision, recall and
+    coverage Wilson intervals on their n (precision over the candidate's images, recall and coverage over the
+    reference's; they treat the images as independent, an approximation), none for density and spectrum."""
     out = {}
 
     def record(view, metric, compute):
@@ -295,7 +381,7 @@ def _set_metrics(reference: dict, candidate: dict) -> dict[tuple[str, str], tupl
         except ValueError:
             out[(view, metric)] = (math.nan, math.nan, math.nan)
 
-    for view in [v for v in reference if v != "pixels"]:
+    for view in [v for v in reference if v != "spectrum"]:
         real, fake = reference[view], candidate[view]
 
         def kid_value():
@@ -305,7 +391,7 @@ def _set_metrics(reference: dict, candidate: dict) -> dict[tuple[str, str], tupl
             return mean, mean - 1.96 * std, mean + 1.96 * std
 
         record(view, "kid", kid_value)
-        record(view, "fid", lambda: (dist.fid(real, fake), math.nan, math.nan))
+        record(view, "fid", lambda: (dist.fid(real, fake), *dist.fid_interval(real, fake, fid_resamples, seed)))
 
         def two_sample():
             if min(len(real), len(fake)) < TWO_SAMPLE_MIN_IMAGES:
@@ -318,106 +404,202 @@ def _set_metrics(reference: dict, candidate: dict) -> dict[tuple[str, str], tupl
             scores = dist.prdc_scores(real, fake)
         except ValueError:
             scores = {}
-        for metric in ("precision", "recall", "density", "coverage"):
+        for metric, count in (("precision", len(fake)), ("recall", len(real)), ("density", 0), ("coverage", len(real))):
             value = scores.get(metric, math.nan)
-            out[(view, metric)] = (value, math.nan, math.nan)
-    record("pixels", "spectrum", lambda: (dist.spectrum_distance(reference["pixels"], candidate["pixels"]),
-                                          math.nan, math.nan))
+            out[(view, metric)] = (value, *_interval_from_share(value, count if scores else 0))
+    spectrum = float(np.mean(np.abs(reference["spectrum"].mean(dim=0).numpy() - candidate["spectrum"].mean(dim=0).numpy())))
+    out[("pixels", "spectrum")] = (spectrum, math.nan, math.nan)
     return out
 
 
-def _features(encoder, images: torch.Tensor) -> torch.Tensor:
-    """``dist.image_features`` of ``images``, each distinct image encoded once (the flat and mean
-    baselines repeat one image per class)."""
-    unique, inverse = torch.unique(images.flatten(1), dim=0, return_inverse=True)
-    if len(unique) == len(images):
-        return dist.image_features(encoder, images)
-    return dist.image_features(encoder, unique.reshape(-1, *images.shape[1:]))[inverse]
+def _cap_rows(rows: np.ndarray, limit: int, rng: np.random.Generator) -> np.ndarray:
+    return rows[_subsample(len(rows), limit, rng)]
 
 
-def encode_sets(sets: dict, encoders: dict) -> dict:
-    """Features of every image set of a direction, computed once: {key: {view: features}} for the keys
-    of ``sets`` (candidates, ``real_test``, ``real_train``); the ``pixels`` view holds the images.
-    The training images serve only the memorisation check, which uses the classifier view and pixels."""
-    encoded = {}
-    for key, (images, *_) in sets.items():
-        views = {v: e for v, e in encoders.items() if key != "real_train" or v != "random"}
-        encoded[key] = {"pixels": images, **{view: _features(e, images) for view, e in views.items()}}
-    return encoded
-
-
-def distribution_direction(direction: str, sets: dict, encoded: dict, encoders: dict,
-                           seed: int) -> tuple[pd.DataFrame, dict]:
+def distribution_direction(direction: str, sets: dict, cache: FeatureCache, seed: int, max_per_class: int,
+                           fid_resamples: int = 0) -> tuple[pd.DataFrame, dict]:
     """Distribution metrics of every candidate set of one direction against real held-out half B, per
-    class and over all classes (``(all)``); see the module docstring. ``encoded`` holds the sets'
-    features (:func:`encode_sets`). Returns the table (DISTRIBUTION_COLUMNS) and facts for
-    summary.json (halving, blur sigma)."""
+    class and over all classes (``(all)``); see the module docstring. Per class, half B and every
+    candidate are subsampled (seeded) to at most ``max_per_class`` images, and a candidate to the size
+    of half A's class, so the quadratic metrics cost at most O(max_per_class^2) per class; the
+    ``(all)`` row pools the images chosen per class (so its class mix is half A's). Features come
+    from ``cache``, each image encoded once. Returns the table (DISTRIBUTION_COLUMNS) and facts for
+    summary.json (halving, blur sigma, the cap)."""
     test_images, test_classes, test_groups = sets["real_test"]
     in_a, by_group = heldout_halves(test_classes, test_groups, seed)
     sigma = dist.default_blur_sigma(test_images.shape[-1])
-    half_a = torch.from_numpy(in_a)
-    blurred = dist.gaussian_blur(test_images[half_a], sigma)
-    features = {("real_heldout", "-"): {v: f[half_a] for v, f in encoded["real_test"].items()},
-                ("blurred_real", "-"): {"pixels": blurred,
-                                        **{v: dist.image_features(e, blurred) for v, e in encoders.items()}}}
-    classes_of = {("real_heldout", "-"): test_classes[in_a], ("blurred_real", "-"): test_classes[in_a]}
+    half_a = np.flatnonzero(in_a)
+    blurred = dist.gaussian_blur(test_images[torch.from_numpy(half_a)], sigma)
+    test_keys = image_keys(test_images)
+    candidates = {("real_heldout", "-"): (test_images, test_classes, test_keys, half_a),
+                  ("blurred_real", "-"): (blurred, test_classes[in_a], image_keys(blurred), None)}
     for key, value in sets.items():
         if isinstance(key, tuple):
-            features[key], classes_of[key] = encoded[key], value[1]
-    reference = {v: f[~half_a] for v, f in encoded["real_test"].items()}
-    reference_classes = test_classes[~in_a]
-    rows = []
-    for name in [*sorted(set(test_classes)), "(all)"]:
-        ref_rows = np.ones(len(reference_classes), bool) if name == "(all)" else reference_classes == name
-        limit = int(in_a.sum()) if name == "(all)" else int((test_classes[in_a] == name).sum())
-        ref = {view: values[torch.from_numpy(ref_rows)] for view, values in reference.items()}
-        for (candidate, scope), classes in classes_of.items():
-            rows_of = np.ones(len(classes), bool) if name == "(all)" else classes == name
-            chosen = np.flatnonzero(rows_of)
-            chosen = chosen[_subsample(len(chosen), limit, np.random.default_rng([seed, len(rows)]))]
-            if len(chosen) == 0:
+            candidates[key] = (value[0], value[1], image_keys(value[0]), None)
+    views = [*cache.encoders, "spectrum"]
+    classes = sorted(set(test_classes))
+    chosen_ref, chosen = {}, {}
+    for i, name in enumerate(classes):
+        ref_rows = np.flatnonzero(~in_a & (test_classes == name))
+        chosen_ref[name] = _cap_rows(ref_rows, max_per_class, np.random.default_rng([seed, i, 0]))
+        limit = min(int((test_classes[in_a] == name).sum()), max_per_class)
+        for k, (key, (_, cand_classes, _, rows_of)) in enumerate(candidates.items()):
+            pool = rows_of if rows_of is not None else np.arange(len(cand_classes))
+            rows = pool[cand_classes[pool] == name]
+            chosen[(name, key)] = _cap_rows(rows, limit, np.random.default_rng([seed, i, k + 1]))
+
+    def features(images, keys, rows):
+        return {view: cache(view, images, keys, rows) for view in views}
+
+    # encode every image the loop below reads in one batched pass per set and view (small batches per
+    # class cost several times more per image)
+    features(test_images, test_keys, np.concatenate([chosen_ref[c] for c in classes] + [half_a]))
+    for key, (images, _, keys, _) in candidates.items():
+        features(images, keys, np.concatenate([chosen[(c, key)] for c in classes]))
+
+    table_rows = []
+    for name in [*classes, "(all)"]:
+        names = classes if name == "(all)" else [name]
+        ref_index = np.concatenate([chosen_ref[c] for c in names])
+        if len(ref_index) == 0:
+            continue
+        ref = features(test_images, test_keys, ref_index)
+        for key, (images, _, keys, _) in candidates.items():
+            rows = np.concatenate([chosen[(c, key)] for c in names])
+            if len(rows) == 0:
                 continue
-            index = torch.from_numpy(chosen)
-            fake = {view: values[index] for view, values in features[(candidate, scope)].items()}
-            for (view, metric), (value, low, high) in _set_metrics(ref, fake).items():
-                rows.append({"direction": direction, "scope": scope, "class": name, "candidate": candidate,
-                             "view": view, "metric": metric, "value": value, "low": low, "high": high,
-                             "n": len(chosen), "n_reference": int(ref_rows.sum())})
+            for (view, metric), (value, low, high) in _set_metrics(ref, features(images, keys, rows),
+                                                                   fid_resamples, seed).items():
+                table_rows.append({"direction": direction, "scope": key[1], "class": name, "candidate": key[0],
+                                   "view": view, "metric": metric, "value": value, "low": low, "high": high,
+                                   "n": len(rows), "n_reference": len(ref_index)})
     facts = {"halves_by": "group" if by_group else "image (some class has a single test group)",
-             "blur_sigma": sigma, "half_a": int(in_a.sum()), "half_b": int((~in_a).sum())}
-    return pd.DataFrame(rows, columns=DISTRIBUTION_COLUMNS), facts
+             "blur_sigma": sigma, "half_a": int(in_a.sum()), "half_b": int((~in_a).sum()),
+             "max_per_class": int(max_per_class), "fid_resamples": int(fid_resamples)}
+    return pd.DataFrame(table_rows, columns=DISTRIBUTION_COLUMNS), facts
 
 
-def memorisation_direction(direction: str, sets: dict, encoded: dict) -> pd.DataFrame:
-    """Memorisation of the pooled model's generated test images (MEMORISATION_COLUMNS): per class and
-    over all, in each encoder's features and in pixels, beside the same rates for real held-out images.
-    ``train_groups``: distinct training split groups (instances, sessions) of the class; for ``(all)``
-    the fewest of any class."""
-    key = ("generated", "all") if ("generated", "all") in sets else next(
+def _pooled_generated(sets: dict):
+    """The key of the pooled model's generated set (scope 'all'), else the first generated set."""
+    return ("generated", "all") if ("generated", "all") in sets else next(
         k for k in sets if isinstance(k, tuple) and k[0] == "generated")
+
+
+def memorisation_direction(direction: str, sets: dict, cache: FeatureCache) -> pd.DataFrame:
+    """Memorisation of the pooled model's generated test images (MEMORISATION_COLUMNS): per class and
+    over all, in pixels and in the classifier's features (where ``cache`` has that encoder), beside the
+    same rates for real held-out images. The four distance matrices are computed once per view for all
+    images and each class reads its blocks. ``train_groups``: distinct training split groups
+    (instances, sessions) of the class; for ``(all)`` the fewest of any class."""
+    key = _pooled_generated(sets)
     gen_classes, train_classes, held_classes = sets[key][1], sets["real_train"][1], sets["real_test"][1]
     groups = pd.Series(sets["real_train"][2]).groupby(pd.Series(train_classes)).nunique()
     train_groups = {**groups.to_dict(), "(all)": int(groups.min()) if len(groups) else 0}
     rows = []
-    for view in encoded["real_train"]:
-        g, t, h = (encoded[k][view] for k in (key, "real_train", "real_test"))
-        if view == "pixels":
-            g, t, h = (x.flatten(1).double() for x in (g, t, h))
+    for view in ["pixels", *[v for v in cache.encoders if v == "classifier"]]:
+        g, t, h = (sets[k][0] if view == "pixels" else cache(view, sets[k][0]) for k in (key, "real_train", "real_test"))
+        if min(len(g), len(t), len(h)) == 0:
+            continue
+        g_t, g_h = dist.pairwise_distances(g, t), dist.pairwise_distances(g, h)
+        h_t, h_h = dist.pairwise_distances(h, t), dist.pairwise_distances(h, h)
         for name in [*sorted(set(gen_classes)), "(all)"]:
             pick = (lambda c: np.ones(len(c), bool)) if name == "(all)" else (lambda c: c == name)
-            gi, ti, hi = (torch.from_numpy(pick(c)) for c in (gen_classes, train_classes, held_classes))
+            gi, ti, hi = (torch.from_numpy(np.flatnonzero(pick(c))) for c in (gen_classes, train_classes, held_classes))
             try:
-                result = dist.memorisation(g[gi], t[ti], h[hi])
+                result = dist.memorisation_from_distances(g_t[gi][:, ti], g_h[gi][:, hi], h_t[hi][:, ti],
+                                                          h_h[hi][:, hi])
             except ValueError:
                 continue
+            rate_low, rate_high = _interval_from_share(result.rate, len(gi))
+            ref_low, ref_high = _interval_from_share(result.reference_rate, len(hi))
             rows.append({"direction": direction, "class": name, "view": view, "candidate": "generated",
-                         "rate": result.rate, "nearest_is_train_share": result.nearest_is_train_share,
-                         "n": int(gi.sum()), "n_train": int(ti.sum()), "train_groups": train_groups.get(name, 0)})
+                         "rate": result.rate, "rate_low": rate_low, "rate_high": rate_high,
+                         "nearest_is_train_share": result.nearest_is_train_share,
+                         "n": len(gi), "n_train": len(ti), "train_groups": train_groups.get(name, 0)})
             rows.append({"direction": direction, "class": name, "view": view, "candidate": "real_heldout",
-                         "rate": result.reference_rate,
+                         "rate": result.reference_rate, "rate_low": ref_low, "rate_high": ref_high,
                          "nearest_is_train_share": result.nearest_is_train_reference,
-                         "n": int(hi.sum()), "n_train": int(ti.sum()), "train_groups": train_groups.get(name, 0)})
+                         "n": len(hi), "n_train": len(ti), "train_groups": train_groups.get(name, 0)})
     return pd.DataFrame(rows, columns=MEMORISATION_COLUMNS)
+
+
+def diversity_direction(direction: str, sets: dict, cache: FeatureCache, seed: int) -> pd.DataFrame:
+    """Within-class diversity ratio of the pooled model's generated test images (DIVERSITY_COLUMNS): per
+    class, the mean pairwise distance among its generated images over the same among the real test
+    images of the class (:func:`vtgen.core.distribution.diversity_ratio`, 95% bootstrap over images), in
+    the 64 px grey view (``pixels``) and the classifier's features; then a ``(median)`` row per view,
+    the median over classes with a 95% bootstrap interval over classes (``n``: classes)."""
+    key = _pooled_generated(sets)
+    (gen_images, gen_classes, _), (real_images, real_classes, _) = sets[key], sets["real_test"]
+    views = {"pixels": "grey", **{v: v for v in cache.encoders if v == "classifier"}}
+    rows = []
+    for view, source in views.items():
+        ratios = []
+        for name in sorted(set(gen_classes) & set(real_classes)):
+            g = cache(source, gen_images[torch.from_numpy(gen_classes == name)])
+            r = cache(source, real_images[torch.from_numpy(real_classes == name)])
+            try:
+                result = dist.diversity_ratio(g, r, seed=seed)
+            except ValueError:
+                continue
+            ratios.append(result.ratio)
+            rows.append({"direction": direction, "class": name, "view": view, "ratio": result.ratio,
+                         "low": result.low, "high": result.high, "generated_spread": result.generated_spread,
+                         "real_spread": result.real_spread, "n": result.n_generated, "n_real": result.n_real,
+                         "interval": "bootstrap over images"})
+        if ratios:
+            median, low, high = dist.median_interval(ratios, seed=seed)
+            rows.append({"direction": direction, "class": "(median)", "view": view, "ratio": median, "low": low,
+                         "high": high, "generated_spread": math.nan, "real_spread": math.nan, "n": len(ratios),
+                         "n_real": len(ratios), "interval": "bootstrap over classes"})
+    return pd.DataFrame(rows, columns=DIVERSITY_COLUMNS)
+
+
+def _num(value) -> float | None:
+    """A finite number rounded to 6 decimals (metrics.json compares exactly), else None."""
+    return None if value is None or not math.isfinite(float(value)) else round(float(value), 6)
+
+
+def goal_metrics(distribution: pd.DataFrame, memorisation: pd.DataFrame, diversity: pd.DataFrame) -> dict:
+    """Issue 24's measurable goals per direction, every value with its 95% interval and n, in plain
+    nested dicts for summary.json and the report's metrics.json: the diversity ratios (median over
+    classes), recall and coverage of generated and real held-out, KID and FID of generated, real
+    held-out and every trivial baseline (classifier view, all classes), and the memorisation rate
+    (classifier view; pixels where there is no classifier) of generated and real held-out."""
+    result: dict = {}
+    for direction in sorted(set(distribution["direction"]) | set(diversity["direction"])):
+        goals: dict = {}
+        div = diversity[(diversity["direction"] == direction) & (diversity["class"] == "(median)")]
+        for row in div.itertuples(index=False):
+            goals[f"diversity_{row.view}"] = {"value": _num(row.ratio), "low": _num(row.low), "high": _num(row.high),
+                                              "classes": int(row.n)}
+        rows = distribution[(distribution["direction"] == direction) & (distribution["class"] == "(all)")
+                            & (distribution["view"] == "classifier")]
+        generated_scope = "all" if ((rows["candidate"] == "generated") & (rows["scope"] == "all")).any() else None
+        for metric, candidates in (("recall", ["generated", "real_heldout"]), ("coverage", ["generated", "real_heldout"]),
+                                   ("kid", ["generated", "real_heldout", *BASELINES]),
+                                   ("fid", ["generated", "real_heldout", *BASELINES])):
+            part = rows[rows["metric"] == metric]
+            entry = {}
+            for candidate in candidates:
+                match = part[part["candidate"] == candidate]
+                if candidate == "generated" and generated_scope:
+                    match = match[match["scope"] == generated_scope]
+                if len(match):
+                    r = match.iloc[0]
+                    entry[candidate] = {"value": _num(r["value"]), "low": _num(r["low"]), "high": _num(r["high"]),
+                                        "n": int(r["n"]), "n_reference": int(r["n_reference"])}
+            if entry:
+                goals[f"{metric}_classifier"] = entry
+        mem = memorisation[(memorisation["direction"] == direction) & (memorisation["class"] == "(all)")]
+        view = "classifier" if (mem["view"] == "classifier").any() else "pixels"
+        entry = {r["candidate"]: {"value": _num(r["rate"]), "low": _num(r["rate_low"]), "high": _num(r["rate_high"]),
+                                  "n": int(r["n"])}
+                 for _, r in mem[mem["view"] == view].iterrows()}
+        if entry:
+            goals[f"memorisation_{view}"] = entry
+        result[direction] = goals
+    return result
 
 
 def _better(metric: str, a: float, b: float) -> bool:
@@ -527,7 +709,9 @@ def _greyscale(images: torch.Tensor) -> bool:
 def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, out_dir: str | Path,
               classify_dir: str | Path | None = None) -> dict:
     """Score every direction under ``generated_root``; write ``scores`` (per image), ``by_class``,
-    ``distribution`` and ``memorisation`` (parquet and CSV) and ``summary.json`` to ``out_dir``.
+    ``distribution``, ``memorisation`` and ``diversity`` (parquet and CSV) and ``summary.json`` (with
+    ``goals``: :func:`goal_metrics`) to ``out_dir``. Reads ``params["score"]``: ``batch_size``,
+    ``max_per_class`` and ``fid_resamples``.
 
     A direction without generated test images (e.g. a one-modality dataset) is skipped with its
     reason in ``summary.json`` ``not_scored``; with no direction left the tables are empty.
@@ -537,8 +721,9 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
     classify_dir = None if classify_dir is None else Path(classify_dir)
     seed = SCORE_SEED
     splits = read_table(pairs_dir / "splits.parquet", SPLIT_COLUMNS, "the split table of the pairs stage")
-    tables, distributions, memorised, notes, not_scored, facts = [], [], [], [], {}, {}
-    timings = {"ssim": 0.0, "distribution": 0.0, "memorisation": 0.0}
+    settings = params["score"]
+    tables, distributions, memorised, diverse, notes, not_scored, facts = [], [], [], [], [], {}, {}
+    timings = {"ssim": 0.0, "distribution": 0.0, "memorisation and diversity": 0.0}
     for direction in DIRECTIONS:
         generated = read_table(generated_root / direction / "generated.parquet", GENERATED_COLUMNS,
                                f"the {direction} output table of the generate stage")
@@ -548,24 +733,27 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
         pairs = read_table(pairs_dir / f"{direction}.parquet", PAIR_COLUMNS, f"a {direction} pair table")
         sets: dict = {}
         started = time.perf_counter()
-        tables.append(score_direction(direction, generated, splits, pairs, params["score"]["batch_size"], sets))
+        tables.append(score_direction(direction, generated, splits, pairs, settings["batch_size"], sets))
         timings["ssim"] += time.perf_counter() - started
         target = DIRECTIONS[direction][1]
-        encoders = load_encoders(classify_dir, target, notes)
+        cache = FeatureCache(load_encoders(classify_dir, target, notes))
         started = time.perf_counter()
-        encoded = encode_sets(sets, encoders)
-        table, facts[direction] = distribution_direction(direction, sets, encoded, encoders, seed)
+        table, facts[direction] = distribution_direction(direction, sets, cache, seed, settings["max_per_class"],
+                                                         settings["fid_resamples"])
         distributions.append(table)
         timings["distribution"] += time.perf_counter() - started
         started = time.perf_counter()
-        memorised.append(memorisation_direction(direction, sets, encoded))
-        timings["memorisation"] += time.perf_counter() - started
+        memorised.append(memorisation_direction(direction, sets, cache))
+        diverse.append(diversity_direction(direction, sets, cache, seed))
+        timings["memorisation and diversity"] += time.perf_counter() - started
+        facts[direction]["images_encoded"] = dict(cache.encoded)
         facts[direction]["greyscale"] = _greyscale(sets["real_test"][0])
         facts[direction]["ssim_name"] = "SSIM" if facts[direction]["greyscale"] else "Colour-SSIM"
     scores = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame(columns=SCORE_COLUMNS)
     classes_table = by_class(scores, seed) if tables else pd.DataFrame(columns=["direction", "scope", "candidate", "class"])
     distribution = pd.concat(distributions, ignore_index=True) if distributions else pd.DataFrame(columns=DISTRIBUTION_COLUMNS)
     memorisation = pd.concat(memorised, ignore_index=True) if memorised else pd.DataFrame(columns=MEMORISATION_COLUMNS)
+    diversity = pd.concat(diverse, ignore_index=True) if diverse else pd.DataFrame(columns=DIVERSITY_COLUMNS)
     generated_rows = scores.loc[scores["candidate"] == "generated", "image"]
     size = _image_side(generated_rows.iloc[0]) if len(generated_rows) else None
     found = verdicts(distribution, memorisation) if tables else []
@@ -579,13 +767,14 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
         "scores": headline(classes_table) if tables else {},
         "distribution": facts,
         "verdicts": found,
+        "goals": goal_metrics(distribution, memorisation, diversity),
         "not_scored": not_scored,
         "notes": notes,
         "seconds": {k: round(v, 2) for k, v in timings.items()},
     }
     with atomic_output_dir(out_dir) as tmp:
         for name, table in (("scores", scores), ("by_class", classes_table), ("distribution", distribution),
-                            ("memorisation", memorisation)):
+                            ("memorisation", memorisation), ("diversity", diversity)):
             table.to_parquet(tmp / f"{name}.parquet", index=False)
             table.to_csv(tmp / f"{name}.csv", index=False, float_format="%.6f")
         (tmp / "summary.json").write_text(json.dumps(_plain(summary), indent=2, allow_nan=False) + "\n")
@@ -599,8 +788,14 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
         print(f"score {direction}: not scored: {reason}")
     for note in notes:
         print(f"  note: {note}")
+    for direction, goals in summary["goals"].items():
+        for view in ("pixels", "classifier"):
+            if f"diversity_{view}" in goals:
+                d = goals[f"diversity_{view}"]
+                print(f"score {direction}: within-class diversity ratio ({view}) {d['value']:.3f} "
+                      f"[{d['low']:.3f}, {d['high']:.3f}], median over {d['classes']} classes")
     print(f"score: {timings['ssim']:.1f} s SSIM, {timings['distribution']:.1f} s distribution metrics, "
-          f"{timings['memorisation']:.1f} s memorisation check")
+          f"{timings['memorisation and diversity']:.1f} s memorisation check and diversity")
     return summary
 
 

@@ -1,0 +1,114 @@
+"""Issue 24's goal numbers (items 1-4) of a finished run, with pass/fail per item: one command, one table.
+
+Reads the score stage's ``data/scores/summary.json`` (its ``goals``: diversity ratios, recall, coverage,
+KID, FID and memorisation, each with a 95% interval and n) and, for item 3, the classify numbers of
+``reports/metrics.json`` (GAN-test and real-only accuracy per modality). Prints a markdown table.
+
+1. No collapse: within-class diversity ratio (median over classes; 64 px grey pixels and classifier
+   features) at least 0.5; recall and coverage (classifier view) of generated at least half of real
+   held-out's.
+2. Beats the no-learning baselines: KID and FID (classifier view) of generated below flat mean colour's
+   and mean image's beyond the intervals (generated's upper bound below the baseline's lower bound; a
+   bound missing counts as overlap). Blurred real and nearest neighbour are shown (stretch goal).
+3. Recognisable: GAN-test of the generated modality at least 0.8 x the lower of the two real-only
+   accuracies. The goal is stated for ``conditioning: none``: read the row with the run's conditioning.
+4. No copying: memorisation rate of generated not above the upper bound of real held-out's interval.
+
+    python benchmarks/unaligned_goals.py                 # the run in the working directory
+    python benchmarks/unaligned_goals.py /path/to/run    # a run folder (data/scores, reports)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+MODALITY = {"v2t": ("visual", "tactile"), "t2v": ("tactile", "visual")}  # (input, output)
+
+
+def _fmt(entry: dict | None) -> str:
+    if not entry or entry.get("value") is None:
+        return "-"
+    low, high = entry.get("low"), entry.get("high")
+    interval = "" if low is None or high is None else f" [{low:.3g}, {high:.3g}]"
+    n = f", n {entry['n']}" if "n" in entry else f", {entry['classes']} classes" if "classes" in entry else ""
+    return f"{entry['value']:.3g}{interval}{n}"
+
+
+def _verdict(ok: bool | None) -> str:
+    return "n/a" if ok is None else "PASS" if ok else "FAIL"
+
+
+def goal_rows(goals: dict, classify: dict) -> list[tuple[str, str, str, str, str]]:
+    """(direction, item, measured, target, verdict) rows for issue 24's items 1-4."""
+    rows = []
+    for direction in sorted(goals):
+        g = goals[direction]
+        for view in ("pixels", "classifier"):
+            entry = g.get(f"diversity_{view}")
+            ok = None if not entry or entry.get("value") is None else entry["value"] >= 0.5
+            rows.append((direction, f"1 diversity ratio ({view})", _fmt(entry), ">= 0.5", _verdict(ok)))
+        for metric in ("recall", "coverage"):
+            entry = g.get(f"{metric}_classifier") or {}
+            gen, real = entry.get("generated"), entry.get("real_heldout")
+            ok = None if not gen or not real or gen["value"] is None or real["value"] is None \
+                else gen["value"] >= 0.5 * real["value"]
+            target = "-" if not real or real["value"] is None else f">= {0.5 * real['value']:.3g} (half of real {_fmt(real)})"
+            rows.append((direction, f"1 {metric} (classifier)", _fmt(gen), target, _verdict(ok)))
+        for metric in ("kid", "fid"):
+            entry = g.get(f"{metric}_classifier") or {}
+            gen = entry.get("generated")
+            for baseline, item in (("flat_mean_colour", "2"), ("mean_image", "2"), ("blurred_real", "2 stretch"),
+                                   ("nearest_neighbour", "2 stretch")):
+                base = entry.get(baseline)
+                ok = None
+                if gen and base and gen.get("value") is not None and base.get("value") is not None:
+                    ok = (gen.get("high") is not None and base.get("low") is not None
+                          and gen["high"] < base["low"])
+                rows.append((direction, f"{item} {metric.upper()} vs {baseline}", _fmt(gen),
+                             f"below {_fmt(base)}", _verdict(ok)))
+        source, target = MODALITY[direction]
+        gan = (classify.get(target) or {}).get("gan_test")
+        reals = [(classify.get(m) or {}).get("real") for m in (source, target)]
+        ok = None if gan is None or None in reals else gan >= 0.8 * min(reals)
+        threshold = "-" if None in reals else f">= {0.8 * min(reals):.3g} (0.8 x min real-only {min(reals):.3g})"
+        rows.append((direction, f"3 GAN-test ({target})", "-" if gan is None else f"{gan:.3g}", threshold, _verdict(ok)))
+        mem = {k: v for k, v in g.items() if k.startswith("memorisation_")}
+        for name, entry in mem.items():
+            gen, real = entry.get("generated"), entry.get("real_heldout")
+            ok = None if not gen or not real or gen["value"] is None or real.get("high") is None \
+                else gen["value"] <= real["high"]
+            rows.append((direction, f"4 {name.replace('_', ' (', 1)})", _fmt(gen), f"<= real held-out {_fmt(real)}",
+                         _verdict(ok)))
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run", nargs="?", type=Path, default=Path("."), help="a run folder (default: here)")
+    args = parser.parse_args()
+    summary_path = args.run / "data/scores/summary.json"
+    if not summary_path.is_file():
+        sys.exit(f"{summary_path}: not found; run the score stage first")
+    goals = json.loads(summary_path.read_text()).get("goals")
+    if not goals:
+        sys.exit(f"{summary_path}: no 'goals' (written by the score stage since issue 26/24); rerun the score stage")
+    metrics_path = args.run / "reports/metrics.json"
+    classify = json.loads(metrics_path.read_text()).get("classify", {}) if metrics_path.is_file() else {}
+    if not classify:
+        print(f"note: {metrics_path} has no classify numbers: item 3 is n/a", file=sys.stderr)
+    rows = goal_rows(goals, classify)
+    print("| direction | goal item | generated (95% interval, n) | target | verdict |")
+    print("|---|---|---|---|---|")
+    for row in rows:
+        print("| " + " | ".join(row) + " |")
+    counted = [r[4] for r in rows if "stretch" not in r[1]]
+    print(f"\n{counted.count('PASS')} pass, {counted.count('FAIL')} fail, {counted.count('n/a')} n/a "
+          f"(stretch rows not counted)")
+
+
+if __name__ == "__main__":
+    main()
