@@ -54,9 +54,9 @@ def goal_rows(goals: dict, classify: dict) -> list[tuple[str, str, str, str, str
         for metric in ("recall", "coverage"):
             entry = g.get(f"{metric}_classifier") or {}
             gen, real = entry.get("generated"), entry.get("real_heldout")
-            ok = None if not gen or not real or gen["value"] is None or real["value"] is None \
+            ok = None if not gen or not real or gen.get("value") is None or real.get("value") is None \
                 else gen["value"] >= 0.5 * real["value"]
-            target = "-" if not real or real["value"] is None else f">= {0.5 * real['value']:.3g} (half of real {_fmt(real)})"
+            target = "-" if not real or real.get("value") is None else f">= {0.5 * real['value']:.3g} (half of real {_fmt(real)})"
             rows.append((direction, f"1 {metric} (classifier)", _fmt(gen), target, _verdict(ok)))
         for metric in ("kid", "fid"):
             entry = g.get(f"{metric}_classifier") or {}
@@ -79,7 +79,7 @@ def goal_rows(goals: dict, classify: dict) -> list[tuple[str, str, str, str, str
         mem = {k: v for k, v in g.items() if k.startswith("memorisation_")}
         for name, entry in mem.items():
             gen, real = entry.get("generated"), entry.get("real_heldout")
-            ok = None if not gen or not real or gen["value"] is None or real.get("high") is None \
+            ok = None if not gen or not real or gen.get("value") is None or real.get("high") is None \
                 else gen["value"] <= real["high"]
             rows.append((direction, f"4 {name.replace('_', ' (', 1)})", _fmt(gen), f"<= real held-out {_fmt(real)}",
                          _verdict(ok)))

@@ -565,7 +565,8 @@ def goal_metrics(distribution: pd.DataFrame, memorisation: pd.DataFrame, diversi
     nested dicts for summary.json and the report's metrics.json: the diversity ratios (median over
     classes), recall and coverage of generated and real held-out, KID and FID of generated, real
     held-out and every trivial baseline (classifier view, all classes), and the memorisation rate
-    (classifier view; pixels where there is no classifier) of generated and real held-out."""
+    (classifier view; pixels where there is no classifier) of generated and real held-out. A value that
+    could not be computed (NaN) is left out."""
     result: dict = {}
     for direction in sorted(set(distribution["direction"]) | set(diversity["direction"])):
         goals: dict = {}
@@ -599,7 +600,14 @@ def goal_metrics(distribution: pd.DataFrame, memorisation: pd.DataFrame, diversi
         if entry:
             goals[f"memorisation_{view}"] = entry
         result[direction] = goals
-    return result
+    return _without_none(result)
+
+
+def _without_none(value):
+    """``value`` without None leaves (a NaN that :func:`_num` dropped), so every leaf is a number."""
+    if isinstance(value, dict):
+        return {k: _without_none(v) for k, v in value.items() if v is not None}
+    return value
 
 
 def _better(metric: str, a: float, b: float) -> bool:
