@@ -16,7 +16,8 @@ trained here for 2 epochs on the training tiles of the target modality.
 The stage (``run_score``) runs with the ``src/`` of a git ref (``--before``) and with the working
 tree, alternately in fresh subprocesses (before, after, after, before, ...), so a change in machine
 load hits both alike. Prints one markdown table: seconds per scale, the slope (least squares over
-the scales, seconds per 1,000 images) and the stage's own split of its time.
+the scales, seconds per 1,000 images) of the wall and CPU time (on a loaded machine the CPU time of a
+one-thread run is the steadier measure) and the stage's own split of its wall time.
 
     python benchmarks/score_scaling.py                       # scales 1 4 10, before = BEFORE, 1 round
     python benchmarks/score_scaling.py --scales 1 4 --repeats 2 --before HEAD
@@ -188,8 +189,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scales", type=int, nargs="+", default=[1, 4, 10])
     parser.add_argument("--before", default=BEFORE, help="git ref timed as 'before' ('none' to skip)")
+    parser.add_argument("--after", default="", help="git ref timed as 'after' (default: the working tree)")
     parser.add_argument("--repeats", type=int, default=1, help="rounds per scale (each: before and after, ABBA)")
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch/OpenMP/numba threads of the stage (1: on a shared, loaded machine two threads "
+                             "mostly wait for each other)")
     parser.add_argument("--keep", type=Path, help="build (or reuse) the inputs here instead of a temporary folder")
     args = parser.parse_args()
     score_params = {"batch_size": 256}
@@ -200,13 +204,16 @@ def main() -> None:
         pass
     with tempfile.TemporaryDirectory() as tmp:
         base = args.keep or Path(tmp)
-        sources = {"after": REPO / "src"}
-        if args.before != "none":
-            archive = subprocess.run(["git", "-C", str(REPO), "archive", args.before, "src"], check=True,
+        def extract(ref: str, name: str) -> Path:
+            archive = subprocess.run(["git", "-C", str(REPO), "archive", ref, "src"], check=True,
                                      capture_output=True).stdout
-            (Path(tmp) / "before").mkdir()
-            subprocess.run(["tar", "-x", "-C", str(Path(tmp) / "before")], input=archive, check=True)
-            sources = {"before": Path(tmp) / "before" / "src", **sources}
+            (Path(tmp) / name).mkdir()
+            subprocess.run(["tar", "-x", "-C", str(Path(tmp) / name)], input=archive, check=True)
+            return Path(tmp) / name / "src"
+
+        sources = {"after": extract(args.after, "after") if args.after else REPO / "src"}
+        if args.before != "none":
+            sources = {"before": extract(args.before, "before"), **sources}
         results: dict = {}
         for scale in args.scales:
             inputs = base / f"x{scale}"
@@ -223,20 +230,25 @@ def main() -> None:
                 for name in (order if r % 2 == 0 else order[::-1]):
                     result = run_once(sources[name], inputs, score_params, args.threads)
                     results.setdefault((scale, name), []).append(result)
-                    print(f"x{scale} ({counts['images']} images) {name}: {result['seconds']:.1f} s "
-                          f"{result['parts']}", file=sys.stderr, flush=True)
+                    print(f"x{scale} ({counts['images']} images) {name}: {result['seconds']:.1f} s wall, "
+                          f"{result['cpu_seconds']:.1f} s CPU {result['parts']}", file=sys.stderr, flush=True)
             results[scale] = counts
     print(f"\nscore stage, {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"{args.threads} threads, load average at the end {os.getloadavg()[0]:.1f}; "
           f"median of {args.repeats} round(s); inputs built from vt60_subset (generated = STAND-IN)\n")
-    print("| code | " + " | ".join(f"x{s}: {results[s]['images']} images ({results[s]['test']} test)"
-                                      for s in args.scales) + " | slope, s per 1,000 images |")
-    print("|---|" + "---|" * (len(args.scales) + 1))
+    images = [results[s]["images"] for s in args.scales]
+    print("| code | measure | " + " | ".join(f"x{s}: {results[s]['images']} images ({results[s]['test']} test)"
+                                              for s in args.scales) + " | slope, s per 1,000 images |")
+    print("|---|---|" + "---|" * (len(args.scales) + 1))
     for name in sources:
-        medians = [float(np.median([r["seconds"] for r in results[(s, name)]])) for s in args.scales]
+        for measure in ("seconds", "cpu_seconds"):
+            medians = [float(np.median([r[measure] for r in results[(s, name)]])) for s in args.scales]
+            cells = [f"{m:.1f} s" for m in medians]
+            print(f"| {name} | {'wall' if measure == 'seconds' else 'CPU'} | " + " | ".join(cells)
+                  + f" | {slope(images, medians):.2f} |")
         parts = [results[(s, name)][0]["parts"] for s in args.scales]
-        cells = [f"{m:.1f} s ({', '.join(f'{k} {v:.0f}' for k, v in p.items())})" for m, p in zip(medians, parts)]
-        print(f"| {name} | " + " | ".join(cells) + f" | {slope([results[s]['images'] for s in args.scales], medians):.2f} |")
+        print(f"| {name} | wall by part | " + " | ".join(", ".join(f"{k} {v:.0f}" for k, v in p.items()) for p in parts)
+              + " | |")
 
 
 if __name__ == "__main__":
