@@ -36,7 +36,9 @@ TIMED = ("timing.json", "timings.json", "summary.json", "train.json", "index.htm
 
 
 def outputs_snapshot(project: Path) -> dict[str, str]:
-    return {f"{out}/{name}": md5 for out in OUTPUTS for name, md5 in snapshot(project / out).items()}
+    """Output file -> md5 (Snakemake's empty folder markers left out: they are not data, and DVC ignores them)."""
+    return {f"{out}/{name}": md5 for out in OUTPUTS for name, md5 in snapshot(project / out).items()
+            if Path(name).name != ".snakemake_timestamp"}
 
 
 def deterministic(files: dict[str, str]) -> dict[str, str]:
@@ -195,6 +197,8 @@ def test_images_added_replaced_or_deleted_below_dataset_path_rerun_ingest(patter
 # Training limits: checked before they are hit
 
 def train(project: Path, tmp_path: Path, capsys, **preset) -> tuple[int, str, str]:
+    """`vtgen train` (v2t, all) in ``project`` with ``preset`` values, writing its model and checkpoints under
+    ``tmp_path``."""
     params = yaml.safe_load((project / "params.yaml").read_text())
     params["presets"]["fast"].update(preset)
     params["translation"]["capacity"]["mode"] = "fixed"
@@ -210,7 +214,7 @@ def train(project: Path, tmp_path: Path, capsys, **preset) -> tuple[int, str, st
 def test_a_batch_larger_than_the_training_data_is_capped_with_a_message(snakemake_project, tmp_path, capsys,
                                                                          monkeypatch):
     project, _ = snakemake_project
-    monkeypatch.chdir(tmp_path)
+    monkeypatch.chdir(project)  # the pair table names tiles relative to the project
     code, out, err = train(project, tmp_path, capsys, batch_size=100000, iterations=2)
     assert code == 0, err
     pairs = json.loads((tmp_path / "model/train.json").read_text())["training_pairs"]
@@ -221,7 +225,7 @@ def test_a_batch_larger_than_the_training_data_is_capped_with_a_message(snakemak
 def test_a_training_step_that_would_not_fit_in_memory_is_refused_before_it_starts(snakemake_project, tmp_path,
                                                                                   capsys, monkeypatch):
     project, _ = snakemake_project
-    monkeypatch.chdir(tmp_path)
+    monkeypatch.chdir(project)
     code, out, err = train(project, tmp_path, capsys, ngf=4096, ndf=4096)
     assert code == 2
     assert re.fullmatch(r"vtgen train: error: presets\.fast: a training step at batch 2, 32 px and width 4096 needs "
