@@ -5,9 +5,9 @@ splits), this trains one direction per variant and seed, translates every test i
 goal's numbers in the classifier view (features of a real-only classifier of the target modality, trained
 here on the real training images of the run with the classify stage's settings):
 
-* diversity: within-class diversity of generated images over that of real test images of the class (mean
-  pairwise distance; pixels: 64 px grey L1; features: L2), median over classes, 95% bootstrap interval over
-  classes (goal 1: >= 0.5);
+* diversity: the score stage's within-class diversity ratio of generated over real test images of the class
+  (64 px grey pixels and classifier features), median over classes, 95% bootstrap interval over classes
+  (goal 1: >= 0.5);
 * recall and coverage (k = 5) of generated vs the real training targets, beside the real test images' own
   (goal 1: >= half of real's);
 * FID and KID (classifier view) of generated, flat mean colour, mean image and real test images against the
@@ -36,8 +36,8 @@ import torch.nn.functional as F
 import yaml
 
 from vtgen.core.classifier import predict, train_classifier, wilson_interval
-from vtgen.core.distribution import (classifier_encoder, fid, flat_colour_set, image_features, kid,
-                                     mean_image_set, memorisation, prdc_scores)
+from vtgen.core.distribution import (classifier_encoder, diversity_ratio, fid, flat_colour_set, grey_pixels,
+                                     image_features, kid, mean_image_set, median_interval, memorisation, prdc_scores)
 from vtgen.core.domain import DIRECTIONS
 from vtgen.io.images import read_tiles
 from vtgen.io.params import model_settings, validate_params
@@ -45,9 +45,6 @@ from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
 from vtgen.stages.generate import translate
 from vtgen.stages.train import (build_conditioning, load_pair_data, objective_settings, resolve_objective,
                                 train_translator)
-
-BOOTSTRAP = 2000
-
 
 def parse_variant(text: str) -> tuple[str, dict]:
     name, _, body = text.partition(":")
@@ -80,33 +77,14 @@ def real_classifier(splits, modality: str, params: dict, root: Path, classes: li
     return run.model, run.test_accuracy[-1], len(test_y)
 
 
-def pairwise_spread(values: torch.Tensor, p: float) -> float:
-    """Mean pairwise distance (L``p``) among the rows of ``values`` (N x D), N >= 2."""
-    d = torch.cdist(values.double(), values.double(), p=p)
-    n = len(values)
-    return float(d.sum() / (n * (n - 1)))
-
-
-def diversity_ratio(generated: torch.Tensor, real: torch.Tensor, classes_gen: np.ndarray, classes_real: np.ndarray,
+def class_diversity(generated: torch.Tensor, real: torch.Tensor, classes_gen: np.ndarray, classes_real: np.ndarray,
                     view) -> tuple[float, float, float]:
-    """Median over classes of spread(generated of c) / spread(real of c), with a 95% bootstrap interval over
-    classes. ``view(images) -> (rows, p)`` turns images into vectors and names the norm."""
-    ratios = []
-    for c in sorted(set(classes_gen) & set(classes_real)):
-        g, r = generated[classes_gen == c], real[classes_real == c]
-        if len(g) < 2 or len(r) < 2:
-            continue
-        (gv, p), (rv, _) = view(g), view(r)
-        ratios.append(pairwise_spread(gv, p) / max(pairwise_spread(rv, p), 1e-12))
-    ratios = np.array(ratios)
-    draws = np.random.default_rng(0).choice(ratios, (BOOTSTRAP, len(ratios)))
-    low, high = np.quantile(np.median(draws, axis=1), [0.025, 0.975])
-    return float(np.median(ratios)), float(low), float(high)
-
-
-def grey_pixels(images: torch.Tensor) -> tuple[torch.Tensor, float]:
-    grey = resized(images, 64).float().mean(dim=1) / 255.0
-    return grey.reshape(len(images), -1), 1.0
+    """Median over classes of the score stage's within-class diversity ratio (:func:`diversity_ratio`) in
+    ``view`` (images -> rows), with its 95% bootstrap interval over classes (:func:`median_interval`)."""
+    ratios = [diversity_ratio(view(generated[classes_gen == c]), view(real[classes_real == c]), resamples=0).ratio
+              for c in sorted(set(classes_gen) & set(classes_real))
+              if (classes_gen == c).sum() >= 2 and (classes_real == c).sum() >= 2]
+    return median_interval(ratios)
 
 
 def run_variant(params, pairs, splits, direction, overrides, seed, iterations, threads, root, context) -> dict:
@@ -142,12 +120,12 @@ def goal_numbers(generated: torch.Tensor, classes: np.ndarray, context: dict) ->
     real_train, real_test = context["train_features"], context["test_features"]
     index = {c: i for i, c in enumerate(context["classes"])}
     correct = predict(context["model"], resized(generated, side)).numpy() == np.array([index[c] for c in classes])
-    view_features = lambda images: (image_features(encoder, resized(images, side)), 2.0)  # noqa: E731
+    view_features = lambda images: image_features(encoder, resized(images, side))  # noqa: E731
     out = {
         "n": len(generated),
-        "diversity_pixels": diversity_ratio(generated, context["test_targets"], classes,
+        "diversity_pixels": class_diversity(generated, context["test_targets"], classes,
                                             context["test_target_classes"], grey_pixels),
-        "diversity_features": diversity_ratio(generated, context["test_targets"], classes,
+        "diversity_features": class_diversity(generated, context["test_targets"], classes,
                                               context["test_target_classes"], view_features),
         "prdc": prdc_scores(real_train, features),
         "fid": fid(real_train, features),

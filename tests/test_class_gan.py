@@ -150,3 +150,77 @@ def test_class_batches_pair_rows_of_one_class():
     for seed in range(20):
         _, _, index = _draw(data, 8, torch.Generator().manual_seed(seed), class_row_pairs=True)
         assert all(data.classes[index[k]] == data.classes[index[k + 1]] for k in range(0, 8, 2))
+
+
+def test_spread_ratio_is_0_for_one_repeated_image_and_1_for_the_real_set_itself():
+    from vtgen.stages.train import spread_ratio, validation_by_class
+
+    real = torch.randint(0, 256, (6, 3, 16, 16), dtype=torch.uint8, generator=torch.Generator().manual_seed(0))
+    assert spread_ratio(real, real) == pytest.approx(1.0)
+    assert spread_ratio(real[:1].expand(6, -1, -1, -1), real) == 0.0
+    assert spread_ratio(real[:1], real) == 1.0  # too few to tell
+    # the capacity probe's class-pair score ranks a collapsed generator below one that varies with its input
+    data = pair_data(fixed=False)
+    data.targets = torch.randint(0, 256, (6, 3, 8, 8), dtype=torch.uint8, generator=torch.Generator().manual_seed(1))
+
+    class Copy(torch.nn.Module):  # returns its input: as varied as the inputs
+        def forward(self, x):
+            return x + 0 * self.w
+
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.zeros(()))
+
+    class Constant(Copy):  # one image whatever the input
+        def forward(self, x):
+            return torch.zeros_like(x) + 0 * self.w
+
+    varied, collapsed = validation_by_class(Copy(), data), validation_by_class(Constant(), data)
+    assert varied["a"] > collapsed["a"] and varied["b"] > collapsed["b"]
+
+
+def rendered_class_pairs(per_class: int, size: int, seed: int, fabrics=("plain_weave", "corduroy", "felt")) -> PairData:
+    """V2T class pairs from the embedded renderer (SYNTHETIC): photo and touch of independent patches of a
+    fabric, as with ``synthetic.aligned: false``."""
+    import numpy as np
+
+    from vtgen.core.synthetic import render_gelsight, render_patch, render_visual, sample_rngs
+
+    photos, touches, classes = [], [], []
+    for c, fabric in enumerate(fabrics):
+        for i in range(per_class):
+            patch_v, patch_t, light_v, light_t = sample_rngs(seed, c, i)
+            photos.append(render_visual(render_patch(fabric, size, patch_v), light_v))
+            touches.append(render_gelsight(render_patch(fabric, size, patch_t), light_t))
+            classes.append(fabric)
+    as_tensor = lambda images: torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2).contiguous()  # noqa: E731
+    inputs = as_tensor(photos)
+    return PairData(inputs, as_tensor(touches), classes, torch.zeros(len(classes), dtype=torch.bool), inputs.clone(),
+                    {f: torch.tensor([i for i, k in enumerate(classes) if k == f]) for f in fabrics},
+                    fixed=torch.zeros(len(classes), dtype=torch.bool))
+
+
+@pytest.mark.slow
+def test_class_pairs_do_not_collapse_to_one_image_per_class():
+    """Outputs for different photos of one fabric differ about as much as real touches of it do.
+
+    Measured with these settings (300 steps, 32 px, widths 8, 3 synthetic fabrics, 12 training and 8 test photos
+    each; spread ratio of :func:`spread_ratio` per class): today's pix2pix objective with its L1 term to the
+    random partner gave 0.22, 0.04 and 0.15 (one blurry touch per fabric); class_gan 1.55, 0.20 and 2.31. The
+    threshold, a median of 0.5, is the issue's "at least half of real"; pix2pix fails it by 3x."""
+    from vtgen.stages.generate import translate
+    from vtgen.stages.train import spread_ratio, train_translator
+
+    train, test = rendered_class_pairs(12, 32, seed=0), rendered_class_pairs(8, 32, seed=1)
+    settings = objective_settings(dict(SETTINGS, patch_layers=2, iterations=300),
+                                  {"preset": "t", "class_gan": {k: CLASS_GAN[k] for k in ("r1", "diffaugment",
+                                                                                           "mode_seeking")}},
+                                  resolve_objective("auto", train)[0])
+    assert settings["objective"] == "class_gan"
+    run = dict(device="cpu", precision="fp32", threads=2, checkpoint_every=10**6, resume=False, log_every=50, seed=0)
+    generator = train_translator(train, settings, run, "v2t", "all", progress=False).generator.eval()
+    outputs = translate(generator, test.inputs)
+    names = sorted(set(test.classes))
+    ratios = [spread_ratio(outputs[[c == name for c in test.classes]], test.targets[[c == name for c in test.classes]])
+              for name in names]
+    assert sorted(ratios)[1] >= 0.5, dict(zip(names, ratios))

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
+import torch.nn.functional as F
 from tqdm import tqdm
 
 from vtgen.core.conditioning import Conditioning, typical_images
@@ -242,7 +243,8 @@ def validation_by_class(generator: UNetGenerator, validation: PairData, conditio
     """Per class, a validation quality where higher is better, in eval mode: the mean aligned Colour-SSIM
     (Wang et al. 2004, 255 range) over the class's aligned validation pairs; for a class without aligned
     pairs, minus the mean over channels of |mean_gen - mean_real| + |std_gen - std_real| of its generated
-    and real validation targets (pixel values in [0, 1]), a set-level score of colour and contrast."""
+    and real validation targets (pixel values in [0, 1]), a set-level score of colour and contrast, minus
+    min(1, |1 - r|), r the within-class spread ratio of :func:`spread_ratio` (0 for a collapsed class)."""
     device = next(generator.parameters()).device
     was_training = generator.training
     generator.eval()
@@ -267,8 +269,23 @@ def validation_by_class(generator: UNetGenerator, validation: PairData, conditio
             keep = torch.from_numpy(rows)
             a, b = made[keep].double() / 255, validation.targets[keep].double() / 255
             gap = (a.mean(dim=(0, 2, 3)) - b.mean(dim=(0, 2, 3))).abs() + (a.std(dim=(0, 2, 3)) - b.std(dim=(0, 2, 3))).abs()
-            scores[name] = -float(gap.mean())
+            scores[name] = -float(gap.mean()) - min(1.0, abs(1.0 - spread_ratio(made[keep], validation.targets[keep])))
     return scores
+
+
+def spread_ratio(generated: torch.Tensor, real: torch.Tensor, side: int = 16) -> float:
+    """Mean pairwise L1 distance among ``generated`` over the same among ``real`` (uint8 N x 3 x S x S), on
+    ``side`` px grey thumbnails in [0, 1]: 1 when generated images vary as much as real ones, 0 when they
+    are all one image (collapse). 1.0 when either set has fewer than 2 images or the real ones are identical."""
+    def spread(images: torch.Tensor) -> float:
+        grey = F.interpolate(images.float().mean(dim=1, keepdim=True) / 255, size=(side, side), mode="area")
+        rows = grey.reshape(len(images), -1).double()
+        return float(torch.cdist(rows, rows, p=1).sum()) / (len(rows) * (len(rows) - 1))
+
+    if len(generated) < 2 or len(real) < 2:
+        return 1.0
+    real_spread = spread(real)
+    return spread(generated) / real_spread if real_spread > 0 else 1.0
 
 
 def settled_classes(history: list[dict], tolerance: float, patience: int) -> dict[str, int | None]:
@@ -719,7 +736,9 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
     fixed_seconds = probes[widths[-1]]["seconds"] / probe_steps * settings["iterations"]
     record = {
         "mode": "auto", "widths": widths, "probe_iterations": probe_steps, "eval_every": cap["eval_every"],
-        "tolerance": tolerance, "patience": patience, "metric": "validation Colour-SSIM per class (aligned pairs)",
+        "tolerance": tolerance, "patience": patience,
+        "metric": "validation Colour-SSIM per class (aligned pairs); for class pairs minus colour, contrast and "
+                  "within-class spread gaps (validation_by_class)",
         "probe": {str(w): p for w, p in probes.items()}, "chosen_width": chosen, "steps": final.steps,
         "max_iterations": settings["iterations"], "stopped_early": final.steps < settings["iterations"],
         "per_class": {name: {"width_needed": needed[name], "settled_at_step": settled.get(name)} for name in needed},
