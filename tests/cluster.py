@@ -152,8 +152,17 @@ class Slurm:
         return rows
 
     def stop(self) -> None:
-        self.daemons.stop()
-        _unlink_system_conf(self.root / "slurm.conf")
+        """Cancel every job still queued or running (their processes end with them), then stop the daemons."""
+        try:
+            if self.daemons.alive("slurmctld"):
+                self.command("scancel", "--full", "--user=root", check=False, timeout=30)
+                wait_for(lambda: not self.command("squeue", "--noheader", check=False, timeout=30).stdout.strip(),
+                         "the cancelled jobs to end", 30)
+        except (Unavailable, subprocess.TimeoutExpired):
+            pass  # stop the daemons all the same
+        finally:
+            self.daemons.stop()
+            _unlink_system_conf(self.root / "slurm.conf")
 
 
 def _slurm_conf(root: Path, node: str, cpus: int, memory_mb: int, ports: dict) -> str:
