@@ -21,6 +21,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -222,9 +223,20 @@ def dvc(args: list[str], cwd: Path, env: dict, check: bool = True) -> subprocess
     return result
 
 
-def remote_objects(remote: Path) -> dict[str, Path]:
-    return {"".join(p.relative_to(remote / "files/md5").parts): p for p in (remote / "files/md5").rglob("*")
-            if p.is_file()} if (remote / "files/md5").is_dir() else {}
+def remote_files(remote: Path) -> tuple[dict[str, Path], list[Path]]:
+    """(the objects of a DVC remote by name, the hidden files beside them: DVC uploads to ``.<random>.tmp`` and
+    renames when complete)."""
+    files = [p for p in (remote / "files/md5").rglob("*") if p.is_file()] if (remote / "files/md5").is_dir() else []
+    objects = {"".join(p.relative_to(remote / "files/md5").parts): p for p in files if not p.name.startswith(".")}
+    return objects, [p for p in files if p.name.startswith(".")]
+
+
+def partial_upload(remote: Path) -> bool:
+    """True while a file is being written on the remote (a non-empty upload under its temporary name)."""
+    try:
+        return any(p.stat().st_size > 0 for p in remote_files(remote)[1])
+    except OSError:  # renamed meanwhile
+        return False
 
 
 def drop_connections(daemons) -> int:
@@ -257,24 +269,30 @@ def test_dvc_remote_over_ssh_round_trips_and_heals_a_dropped_push(snakemake_proj
     subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qam", "shared remote"],
                    cwd=origin, env=env, check=True)
 
-    # a push whose connection drops once a few objects are on the remote
+    # a push whose connection drops in the middle of a file: a large artefact makes the moment easy to catch
+    (origin / "large.bin").write_bytes(np.random.default_rng(0).bytes(48 * 2**20))
+    dvc(["add", "large.bin"], origin, env)
+    subprocess.run(["git", "add", "-A"], cwd=origin, env=env, check=True)
+    subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "a large artefact"],
+                   cwd=origin, env=env, check=True)
     push = subprocess.Popen(["dvc", "push", "-j", "1"], cwd=origin, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     dropped = 0
     while push.poll() is None and not dropped:
-        if len(remote_objects(remote)) >= 5:
+        if partial_upload(remote):
             dropped = drop_connections(daemons)
-        time.sleep(0.01)
+        time.sleep(0.002)
     output = push.communicate(timeout=120)[0]
     assert dropped and push.returncode != 0, f"the push finished before its connection could be dropped:\n{output}"
-    partial = len(remote_objects(remote))
+    partial, leftovers = remote_files(remote)
+    assert leftovers  # the file cut short stays under its temporary name, never under its object's name
 
     dvc(["push"], origin, env)  # the same command again completes the upload
-    objects = remote_objects(remote)
-    assert len(objects) > partial
+    objects, _ = remote_files(remote)
+    assert len(objects) > len(partial)
     for name, path in objects.items():  # nothing half-written: every object's content matches its name
         assert hashlib.md5(path.read_bytes()).hexdigest() == name.removesuffix(".dir"), path
-    assert "everything is up to date" in dvc(["status", "--cloud"], origin, env).stdout.lower()
+    assert "in sync" in dvc(["status", "--cloud"], origin, env).stdout.lower()
 
     # a colleague's fresh clone pulls everything and finds the pipeline up to date, with the same metrics
     clone = tmp_path / "clone"
@@ -284,3 +302,4 @@ def test_dvc_remote_over_ssh_round_trips_and_heals_a_dropped_push(snakemake_proj
     assert "up to date" in dvc(["status", "dvc.yaml"], clone, env).stdout.lower()
     assert (clone / "reports/metrics.json").read_bytes() == (local / "reports/metrics.json").read_bytes()
     assert images(clone) == images(origin) and len(images(origin)) > 10
+    assert (clone / "large.bin").read_bytes() == (origin / "large.bin").read_bytes()
