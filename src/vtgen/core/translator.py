@@ -7,8 +7,8 @@ no logging. The train stage (:mod:`vtgen.stages.train`) loops around it.
 * ``class_gan``: for class-paired data, where the target is a random image of the input's class and a pixel
   loss towards it has the class mean as its optimum (the collapse measured in issue 24). No pixel loss; a
   projection discriminator told the class (Miyato & Koyama 2018) judges augmented images (DiffAugment, Zhao
-  et al. 2020) with an R1 penalty (Mescheder et al. 2018); a mode-seeking term (Mao et al. 2019) makes
-  outputs of two inputs of one class differ as their inputs do.
+  et al. 2020) with an R1 penalty (Mescheder et al. 2018); a clipped mode-seeking term (Mao et al. 2019;
+  Yang et al. 2019) makes outputs of two inputs of one class differ as much as two real images of it do.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ LOSS_NAMES = ("loss_d", "loss_g_gan", "loss_g_l1")
 STATE_KEYS = ("generator", "discriminator", "opt_g", "opt_d")
 PRECISIONS = ("fp32", "bf16")
 OBJECTIVES = ("pix2pix", "class_gan")
-MODE_SEEKING_EPS = 1e-5  # Mao et al. 2019's epsilon in 1 / (ratio + eps)
+MODE_SEEKING_EPS = 1e-5  # floor of the real gap in the mode-seeking ratio
 
 
 def discriminator_features(discriminator: nn.Module, pair: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
@@ -162,9 +162,9 @@ class TranslatorTraining:
         false) and D(·, c) the projection discriminator:
         D minimises ½[L(D(A(y), c), real) + L(D(A(G(x)), c), fake)] + (r1/2)·E‖∇_y D(A(y), c)‖² (R1,
         Mescheder et al. 2018, on the real images; the gradient of the patch logits' sum per image);
-        then G minimises L(D(A(G(x)), c), real) + mode_seeking / (r + ε), with
-        r = mean|G(x₂ₖ) − G(x₂ₖ₊₁)| / mean|x₂ₖ − x₂ₖ₊₁| over the image channels (Mao et al. 2019, eq. 3,
-        with the second input of the class in place of a second noise draw; ε = 1e-5).
+        then G minimises L(D(A(G(x)), c), real) + mode_seeking·max(0, 1 − r), with
+        r = mean|G(x₂ₖ) − G(x₂ₖ₊₁)| / mean|y₂ₖ − y₂ₖ₊₁| (:func:`mode_seeking_loss`: Mao et al. 2019, eq. 3,
+        with the second input of the class in place of a second noise draw, clipped as in DSGAN).
         ``loss_g_l1`` is |G(x) − y| against the random partner: logged, never trained on.
         """
         cfg = self.settings
@@ -188,7 +188,7 @@ class TranslatorTraining:
             with self._autocast():
                 d_fake = self.discriminator(augment(fake), labels)
             loss_g_gan = self._loss(d_fake, True)
-            loss_g = loss_g_gan + seeking * mode_seeking_loss(fake.float(), x[:, :3]) if seeking else loss_g_gan
+            loss_g = loss_g_gan + seeking * mode_seeking_loss(fake.float(), y) if seeking else loss_g_gan
             self.opt_g.zero_grad(set_to_none=True)
             loss_g.backward()
             self.opt_g.step()
@@ -224,16 +224,21 @@ def r1_penalty(real_logits: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
     return 0.5 * gradient.pow(2).sum(dim=tuple(range(1, gradient.dim()))).mean()
 
 
-def mode_seeking_loss(outputs: torch.Tensor, inputs: torch.Tensor) -> torch.Tensor:
-    """1 / (r + ε), r = mean|o₂ₖ − o₂ₖ₊₁| / mean|i₂ₖ − i₂ₖ₊₁| over the row pairs (2k, 2k+1) of the batch
-    (Mao et al. 2019, eq. 3, ε = 1e-5): small when outputs differ at least as much as their inputs do.
-    The input difference is detached (it is data); N must be even and at least 2."""
+def mode_seeking_loss(outputs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """max(0, 1 − r), r = mean|o₂ₖ − o₂ₖ₊₁| / mean|t₂ₖ − t₂ₖ₊₁| over the row pairs (2k, 2k+1) of the batch,
+    where the two rows of a pair are of one class and ``targets`` are real images of those classes.
+
+    Zero once two outputs of a class differ as much as two real images of it do: the mode-seeking ratio of
+    Mao et al. 2019 (eq. 3), clipped as in Yang et al. 2019 (DSGAN), with the real spread of the class as
+    its scale so that a low-contrast target modality (touch) is not pushed to more contrast than it has
+    (an unclipped 1/r, tried first, tripled the output contrast of V2T). ``targets`` is detached (data); N
+    must be even and at least 2."""
     n = outputs.shape[0]
     if n < 2 or n % 2:
         raise ValueError(f"mode seeking pairs rows (2k, 2k+1): the batch needs an even size >= 2, got {n}")
     out_gap = (outputs[0::2] - outputs[1::2]).abs().mean()
-    in_gap = (inputs[0::2] - inputs[1::2]).abs().mean().detach().float()
-    return 1.0 / (out_gap / in_gap.clamp_min(MODE_SEEKING_EPS) + MODE_SEEKING_EPS)
+    real_gap = (targets[0::2] - targets[1::2]).abs().mean().detach().float()
+    return torch.relu(1.0 - out_gap / real_gap.clamp_min(MODE_SEEKING_EPS))
 
 
 def training_step_flops(settings: dict, input_channels: int = 3, precision: str = "fp32") -> int:

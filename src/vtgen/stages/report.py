@@ -726,6 +726,7 @@ def models_table(runs: list[dict]) -> pd.DataFrame:
     return pd.DataFrame([{
         "model": f"{r['direction']}/{r['scope']}", "status": r.get("status", "ok"), "preset": r.get("preset"),
         "conditioning": r.get("conditioning", "none") if r.get("status", "ok") == "ok" else None,
+        "objective": (r.get("objective") or {}).get("name"), "objective chosen because": (r.get("objective") or {}).get("reason"),
         "capacity": (r.get("capacity") or {}).get("mode"), "width (ngf)": (r.get("settings") or {}).get("ngf"),
         "size": (r.get("settings") or {}).get("size"), "iterations": r.get("steps"), "wall s": r.get("wall_seconds"),
         "s/iteration": r.get("seconds_per_iteration"), "final val L1": r.get("final_val_l1"),
