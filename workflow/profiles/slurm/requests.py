@@ -4,7 +4,8 @@
 
 RUN is the project folder of a finished run (default: the current folder). Each stage command records its wall
 time and peak resident memory in ``timing.json`` in its output folder (``peak_rss_mb``, the stage process;
-``peak_rss_children_mb``, its largest worker process). For every rule this prints the measured peaks and the
+``peak_rss_children_mb``, its largest worker process; a worker's RSS counts the pages it shares with the stage
+process, so the sum below is an upper bound). For every rule this prints the measured peaks and the
 ``set-resources`` lines for workflow/profiles/slurm/config.yaml:
 
     mem_mb  = round up to 100 MB of  M x (peak_rss_mb + workers x peak_rss_children_mb) x S  +  JOB_OVERHEAD_MB
@@ -25,8 +26,9 @@ import json
 import math
 from pathlib import Path
 
-JOB_OVERHEAD_MB = 600  # the two Snakemake processes inside every SLURM job (batch script and job step), measured
-#                        with sacct on the test cluster (docs/scaling.md)
+JOB_OVERHEAD_MB = 400  # the two Snakemake processes inside every SLURM job: 183-185 MB for the batch script's and
+#                        181-200 MB for the job step's (sacct MaxRSS of the step minus the stage's peak_rss_mb), 9 jobs
+#                        of the tiny main job on the test cluster (docs/scaling.md)
 WORKER_KEYS = {"render": "synthetic.workers", "roi": "ingest.workers"}  # rules whose stage starts worker processes
 
 
