@@ -3,8 +3,8 @@
 Runs the classify stage (``run_classify``, params.yaml's ``classify`` section: every setting, seed
 and epoch) of one modality with the source tree of a git ref (``--before``) and with the working
 tree, once per ``--variant`` of the params (dotted overrides, e.g. ``patience2:classify.patience=2``),
-alternately (before, after..., then the reverse order in the next repeat) in fresh subprocesses so
-that a change in machine load hits all alike. Prints a markdown table: wall and CPU seconds, images
+each in a fresh subprocess: alternately (before, after..., then the reverse order in the next
+repeat) so that a change in machine load hits all alike, or with ``--side-by-side`` all at once. Prints a markdown table: wall and CPU seconds, images
 per second, epochs run, and the final test accuracy of ``real`` and of the policy's choice (mean
 over seeds, 95% Wilson interval on the n real test images, the spread over seeds).
 
@@ -91,13 +91,19 @@ def with_overrides(params: dict, overrides: list[str]) -> dict:
     return params
 
 
-def run_once(src: Path, params: Path, modality: str, root: Path, pairs: str, generated: Path, out: Path) -> dict:
+def start(src: Path, params: Path, modality: str, root: Path, pairs: str, generated: Path, out: Path,
+          logs: Path) -> subprocess.Popen:
+    """One classify run in a fresh process (its output in ``logs``.out/.err)."""
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    done = subprocess.run([sys.executable, "-c", RUNNER, str(src), str(params), modality, pairs, str(generated),
-                           str(out)], cwd=root, env=env, capture_output=True, text=True)
-    if done.returncode:
-        raise SystemExit(f"classify run failed ({src}):\n{done.stderr[-3000:]}")
-    line = next(l for l in done.stdout.splitlines() if l.startswith("BENCH "))
+    return subprocess.Popen([sys.executable, "-c", RUNNER, str(src), str(params), modality, pairs, str(generated),
+                             str(out)], cwd=root, env=env, stdout=open(f"{logs}.out", "w"),
+                            stderr=open(f"{logs}.err", "w"))
+
+
+def finish(process: subprocess.Popen, out: Path, logs: Path) -> dict:
+    if process.wait():
+        raise SystemExit(f"classify run failed:\n{Path(f'{logs}.err').read_text()[-3000:]}")
+    line = next(l for l in Path(f"{logs}.out").read_text().splitlines() if l.startswith("BENCH "))
     result = json.loads(line[len("BENCH "):])
     result["table"] = pd.read_parquet(out / "accuracy.parquet")
     return result
@@ -130,6 +136,9 @@ def main() -> None:
     parser.add_argument("--variant", action="append", default=[],
                         help="NAME:key=value[,key=value]: one more 'after' run with these params overrides")
     parser.add_argument("--repeats", type=int, default=1)
+    parser.add_argument("--side-by-side", action="store_true",
+                        help="start every code's run of a repeat at once (one process each): on a shared, loaded "
+                             "machine they then meet the same load; CPU seconds stay comparable, wall seconds inflate")
     args = parser.parse_args()
     root = Path(args.root).resolve()
     base = yaml.safe_load(Path(args.params).read_text())
@@ -149,17 +158,25 @@ def main() -> None:
         results: dict[str, list[dict]] = {name: [] for name in codes}
         load = [os.getloadavg()[0]]
         for repeat in range(args.repeats):  # before first in even repeats, last in odd ones
-            for name, (src, _) in list(codes.items())[::1 if repeat % 2 == 0 else -1]:
-                out = tmp / f"out_{repeat}_{list(codes).index(name)}"
-                result = run_once(src, params_files[name], args.modality, root, args.pairs, generated, out)
-                results[name].append(result)
-                load.append(os.getloadavg()[0])
-                print(f"# {name}, run {repeat + 1}: {result['seconds']:.1f} s wall, {result['cpu_seconds']:.1f} s CPU",
-                      file=sys.stderr, flush=True)
+            order = list(codes.items())[::1 if repeat % 2 == 0 else -1]
+            batches = [order] if args.side_by_side else [[item] for item in order]
+            for batch in batches:
+                running = []
+                for name, (src, _) in batch:
+                    out, logs = tmp / f"out_{repeat}_{list(codes).index(name)}", tmp / f"log_{repeat}_{list(codes).index(name)}"
+                    running.append((name, out, logs, start(src, params_files[name], args.modality, root, args.pairs,
+                                                           generated, out, logs)))
+                for name, out, logs, process in running:
+                    result = finish(process, out, logs)
+                    results[name].append(result)
+                    load.append(os.getloadavg()[0])
+                    print(f"# {name}, run {repeat + 1}: {result['seconds']:.1f} s wall, {result['cpu_seconds']:.1f} s CPU",
+                          file=sys.stderr, flush=True)
         counts = results[next(iter(codes))][0]["summary"]["counts"]
         command = (f"python benchmarks/classify_speed.py --root {args.root} --pairs {args.pairs}"
                    + (f" --generated {args.generated}" if args.generated else "")
                    + f" --modality {args.modality} --repeats {args.repeats}"
+                   + (" --side-by-side" if args.side_by_side else "")
                    + "".join(f" --variant {v}" for v in args.variant))
         print(f"classify {args.modality}: {counts['real_train']} real training, {counts.get('real_val', '?')} "
               f"validation, {counts['real_test']} test images, {counts['generated_train']} "
