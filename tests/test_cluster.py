@@ -231,6 +231,12 @@ def remote_files(remote: Path) -> tuple[dict[str, Path], list[Path]]:
     return objects, [p for p in files if p.name.startswith(".")]
 
 
+def assert_whole(objects: dict[str, Path]) -> None:
+    """Nothing half-written: every object's content matches the MD5 it is named by."""
+    for name, path in objects.items():
+        assert hashlib.md5(path.read_bytes()).hexdigest() == name.removesuffix(".dir"), path
+
+
 def partial_upload(remote: Path) -> bool:
     """True while a file is being written on the remote (a non-empty upload under its temporary name)."""
     try:
@@ -284,14 +290,13 @@ def test_dvc_remote_over_ssh_round_trips_and_heals_a_dropped_push(snakemake_proj
         time.sleep(0.002)
     output = push.communicate(timeout=120)[0]
     assert dropped and push.returncode != 0, f"the push finished before its connection could be dropped:\n{output}"
-    partial, leftovers = remote_files(remote)
-    assert leftovers  # the file cut short stays under its temporary name, never under its object's name
+    partial, _ = remote_files(remote)
+    assert_whole(partial)  # the file cut short is not under its object's name (DVC uploads to a temporary name)
 
     dvc(["push"], origin, env)  # the same command again completes the upload
     objects, _ = remote_files(remote)
     assert len(objects) > len(partial)
-    for name, path in objects.items():  # nothing half-written: every object's content matches its name
-        assert hashlib.md5(path.read_bytes()).hexdigest() == name.removesuffix(".dir"), path
+    assert_whole(objects)
     assert "in sync" in dvc(["status", "--cloud"], origin, env).stdout.lower()
 
     # a colleague's fresh clone pulls everything and finds the pipeline up to date, with the same metrics
