@@ -10,6 +10,7 @@ checkpoint, and a slurmd restart while a job runs.
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import json
 import os
 import re
@@ -43,6 +44,28 @@ def test_timing_records_peak_memory_of_the_stage_and_its_workers():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     peaks = eval(out)  # the dict the child printed
     assert 150 <= peaks["peak_rss_mb"] < 400 <= peaks["peak_rss_children_mb"] < 500
+
+
+def test_requests_scale_measured_peaks_by_the_data(tmp_path):
+    """measured_requests.py: the largest peak per rule from a run's timing.json files, then the documented formula."""
+    spec = importlib.util.spec_from_file_location("requests_py", REPO / "workflow/profiles/slurm/measured_requests.py")
+    requests = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(requests)
+    for folder, record in {"data/roi": ("roi", 100, 400, 250), "models/v2t/all": ("train", 600, 900, 0),
+                           "models/t2v/all": ("train", 500, 700, 0), "old": ("pairs", 5, None, None)}.items():
+        (tmp_path / folder).mkdir(parents=True)
+        stage, seconds, peak, child = record
+        timing = {"stage": stage, "seconds": seconds} | ({"peak_rss_mb": peak, "peak_rss_children_mb": child}
+                                                         if peak is not None else {})
+        (tmp_path / folder / "timing.json").write_text(json.dumps(timing))
+    peaks = requests.measured(tmp_path)
+    assert peaks == {"roi": {"seconds": 100, "peak_rss_mb": 400, "peak_rss_children_mb": 250},
+                     "train": {"seconds": 600, "peak_rss_mb": 900, "peak_rss_children_mb": 0}}  # no peak: left out
+    params = {"ingest": {"workers": 2}}
+    assert requests.requests(peaks, params) == {"roi": {"mem_mb": 2200, "runtime": 10},  # 2 x (400 + 2 x 250) + 400
+                                                "train": {"mem_mb": 2200, "runtime": 20}}
+    assert requests.requests(peaks, params, data=10, train=3) == {"roi": {"mem_mb": 18400, "runtime": 35},
+                                                                  "train": {"mem_mb": 5800, "runtime": 60}}
 
 
 @pytest.fixture(scope="module")

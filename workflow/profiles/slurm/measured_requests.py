@@ -1,6 +1,6 @@
 """Memory and time requests per rule from the peaks a finished run measured (its timing.json files).
 
-    python workflow/profiles/slurm/requests.py [RUN] [--data X] [--train Y] [--margin M]
+    python workflow/profiles/slurm/measured_requests.py [RUN] [--data X] [--train Y] [--margin M]
 
 RUN is the project folder of a finished run (default: the current folder). Each stage command records its wall
 time and peak resident memory in ``timing.json`` in its output folder (``peak_rss_mb``, the stage process;
