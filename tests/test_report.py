@@ -436,7 +436,7 @@ def test_first_screen_answers_whether_generated_data_helps_before_the_long_lines
     assert first < verdicts and page.index("Does generated data help here?") < page.index("<h2>Verdicts</h2>")
     assert ("| tactile | chosen on validation; within noise on test (unresolved) | real+generated | 0.810 [0.400, 0.970] "
             "| 0.710 [0.300, 0.950] | +0.100 [-0.050, +0.250] | 4 |") in summary
-    assert "| visual | no: real only (not scored) | real | 0.710 [0.300, 0.950] | 0.710 [0.300, 0.950] |" in summary
+    assert "| visual | not tested: real only (not scored) | real | 0.710 [0.300, 0.950] | 0.710 [0.300, 0.950] |" in summary
     assert "too few groups" in summary[first:verdicts] and "&lt;b&gt;" in page[:page.index("<h2>Verdicts</h2>")]
     # the grid: one row per direction, one column per family, each cell coloured by its status
     assert "| direction | KID (classifier) | memorisation (classifier) |" in summary

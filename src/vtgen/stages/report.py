@@ -320,7 +320,8 @@ def policy_rows(data: dict) -> list[dict]:
         gain = test.get("gain")
         low, high = test.get("gain_interval") or (None, None)
         if not policy["uses_generated"]:
-            answer, status = "no: real only", "unresolved" if policy.get("candidates") else "not scored"
+            answer, status = (("no: real only", "unresolved") if policy.get("candidates")
+                              else ("not tested: real only", "not scored"))
         else:
             answer = "yes" if low is not None and low > 0 else "chosen on validation; within noise on test"
             status = "ok" if low is not None and low > 0 else "unresolved"
