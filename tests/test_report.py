@@ -635,7 +635,7 @@ def test_studies_report_uses_the_shared_templates_and_escapes(tmp_path):
     assert '<a href="../index.html">main report</a>' in page and "SYNTHETIC DATA" in page
     assert "<td>&lt;b&gt;</td>" in page and "loss &lt;NaN&gt;" in page and "<td><b></td>" not in page
     assert "<p>about &lt;i&gt;default&lt;/i&gt;. Overrides:" in page and "<i>" not in page  # prose is escaped too
-    assert "about <i>default</i>. Overrides:" in summary
+    assert "about &lt;i&gt;default&lt;/i&gt;. Overrides:" in summary and "<i>" not in summary  # shown, not run
     assert "30 s with capacity auto, against 40 s" in summary and "25% saved" in summary
     assert "Training time with capacity auto: 10 s for all 2 classes" in page  # per-class run vs 'width_64'
     assert "| cloth_types | v2t |" in summary and (out / "figures" / "pareto.png").is_file()
