@@ -273,9 +273,9 @@ def validation_by_class(generator: UNetGenerator, validation: PairData, conditio
     return scores
 
 
-def spread_ratio(generated: torch.Tensor, real: torch.Tensor, side: int = 16) -> float:
+def spread_ratio(generated: torch.Tensor, real: torch.Tensor, side: int = 64) -> float:
     """Mean pairwise L1 distance among ``generated`` over the same among ``real`` (uint8 N x 3 x S x S), on
-    ``side`` px grey thumbnails in [0, 1]: 1 when generated images vary as much as real ones, 0 when they
+    ``side`` px grey images in [0, 1] (64: the score stage's pixel view of diversity): 1 when generated images vary as much as real ones, 0 when they
     are all one image (collapse). 1.0 when either set has fewer than 2 images or the real ones are identical."""
     def spread(images: torch.Tensor) -> float:
         grey = F.interpolate(images.float().mean(dim=1, keepdim=True) / 255, size=(side, side), mode="area")
