@@ -139,7 +139,8 @@ def test_tiny_main_job_through_slurm_matches_the_local_run_and_heals(slurm, snak
     local, local_run = snakemake_project
     local_log = local_run.stdout + local_run.stderr
     project = make_project(tmp_path / "project", tiny_params())
-    env = {**ENV, **{k: v for k, v in slurm.env.items() if k.startswith("SLURM_CONF")}}
+    env = {k: v for k, v in ENV.items() if not k.startswith(("SLURM_", "SBATCH_", "SALLOC_", "SRUN_"))}
+    env["SLURM_CONF"] = slurm.env["SLURM_CONF"]  # the test cluster, not a SLURM job pytest may itself run in
     planned = planned_jobs(project, env)
     assert len(planned) == 12 and all(job["mem_mb"] <= slurm.memory_mb for job in planned.values()), planned
 
