@@ -85,7 +85,8 @@ def test_a_new_stage_in_the_table_appears_in_both_workflows_with_its_code(tmp_pa
     env = {**ENV, "PYTHONPATH": str(project / "src")}
     subprocess.run([sys.executable, "-m", "vtgen", "workflow"], cwd=project, env=env, check=True, capture_output=True)
     written = yaml.safe_load((project / "dvc.yaml").read_text())["stages"]["count"]
-    assert written["cmd"].endswith("--out data/count") and written["outs"] == ["data/count"]
+    # persist: a `dvc repro` that the run lock then refuses must not have removed the output (issue 25)
+    assert written["cmd"].endswith("--out data/count") and written["outs"] == [{"data/count": {"persist": True}}]
     assert "src/vtgen/stages/pairs.py" in written["deps"] and "src/vtgen/io/tables.py" in written["deps"]
     dry = subprocess.run(["snakemake", "-n", "-p", "data/count"], cwd=project, env=env, capture_output=True, text=True)
     assert dry.returncode == 0, dry.stdout[-3000:] + dry.stderr[-3000:]
