@@ -45,15 +45,7 @@ from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
 from vtgen.stages.generate import translate
 from vtgen.stages.train import (build_conditioning, load_pair_data, objective_settings, resolve_objective,
                                 train_translator)
-
-def parse_variant(text: str) -> tuple[str, dict]:
-    name, _, body = text.partition(":")
-    overrides = {}
-    for item in filter(None, body.split(";")):
-        key, _, value = item.partition("=")
-        overrides[key.strip()] = yaml.safe_load(value)
-    return name, overrides
-
+from translation_quality import parse_variant  # the same name:key=value;... variants (benchmarks/ is on sys.path)
 
 def resized(images: torch.Tensor, side: int) -> torch.Tensor:
     if images.shape[-1] == side:
