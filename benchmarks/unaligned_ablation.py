@@ -39,7 +39,7 @@ from vtgen.core.classifier import predict, train_classifier, wilson_interval
 from vtgen.core.distribution import (classifier_encoder, diversity_ratio, fid, flat_colour_set, grey_pixels,
                                      image_features, kid, mean_image_set, median_interval, memorisation, prdc_scores)
 from vtgen.core.domain import DIRECTIONS
-from vtgen.io.images import read_tiles
+from vtgen.io.images import read_tiles, write_png
 from vtgen.io.params import model_settings, validate_params
 from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
 from vtgen.stages.generate import translate
@@ -103,7 +103,24 @@ def run_variant(params, pairs, splits, direction, overrides, seed, iterations, t
     inputs, input_classes = context["test_inputs"], context["test_input_classes"]
     labels = conditioning.labels(list(input_classes)) if conditioning.kind != "none" else None
     generated = translate(result.generator.eval(), inputs, conditioning=conditioning, labels=labels)
-    return {"objective": objective, "seconds": seconds, **goal_numbers(generated, input_classes, context)}
+    return {"objective": objective, "seconds": seconds, "generated": generated,
+            **goal_numbers(generated, input_classes, context)}
+
+
+def write_sheet(path: Path, generated: torch.Tensor, context: dict, per_class: int = 4) -> None:
+    """One row per class: ``per_class`` test inputs, their translations, and as many real test targets of the
+    class (the pictures to look at beside the numbers)."""
+    rows = []
+    for c in context["classes"]:
+        inputs = torch.from_numpy(context["test_input_classes"] == c)
+        targets = torch.from_numpy(context["test_target_classes"] == c)
+        cells = [context["test_inputs"][inputs][:per_class], generated[inputs][:per_class],
+                 context["test_targets"][targets][:per_class]]
+        side = generated.shape[-1]
+        cells = [torch.cat([resized(t, side), torch.zeros(per_class - len(t), 3, side, side, dtype=torch.uint8)])
+                 for t in cells]
+        rows.append(torch.cat([torch.cat(list(t), dim=2) for t in cells], dim=2))
+    write_png(path, torch.cat(rows, dim=1).permute(1, 2, 0).contiguous().numpy())
 
 
 def goal_numbers(generated: torch.Tensor, classes: np.ndarray, context: dict) -> dict:
@@ -177,6 +194,8 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--iterations", type=int, default=1500)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--sheets", type=Path, help="folder for one PNG per variant and seed: per class, test inputs, "
+                                                   "their translations and real test targets")
     args = parser.parse_args()
     root = Path(args.run).resolve()
     params = validate_params(yaml.safe_load((root / "params.yaml").read_text()))
@@ -196,6 +215,9 @@ def main() -> None:
             result = run_variant(params, pairs, splits, args.direction, overrides, seed, args.iterations,
                                  args.threads, root, context)
             lines.append(row(f"{name} ({result['objective']})", seed, result))
+            if args.sheets:
+                args.sheets.mkdir(parents=True, exist_ok=True)
+                write_sheet(args.sheets / f"{args.direction}_{name}_{seed}.png", result["generated"], context)
             print(lines[-1], flush=True)
     print("\n" + header + "\n" + "\n".join(lines))
 

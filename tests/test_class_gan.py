@@ -13,7 +13,8 @@ from vtgen.stages.train import _draw, objective_settings, PairData, resolve_obje
 SETTINGS = {"size": 32, "ngf": 8, "ndf": 8, "kernel": 4, "discriminator": "patch", "patch_layers": 2,
             "gan_loss": "bce", "l1_weight": 100.0, "optimizer": "adam", "lr": 2e-4, "betas": [0.5, 0.999],
             "batch_size": 4, "iterations": 4, "noise": False}
-CLASS_GAN = {"objective": "class_gan", "r1": 0.1, "diffaugment": True, "mode_seeking": 1.0}  # the params.yaml default
+CLASS_GAN = {"objective": "class_gan", "r1": 0.1, "diffaugment": True, "mode_seeking": 1.0,
+             "class_guidance": 0.0}  # the params.yaml default
 
 
 def test_translation_moves_the_image_by_whole_pixels_and_fills_zeros():
@@ -126,6 +127,53 @@ def test_the_l1_weight_does_not_act_on_class_pairs_and_each_term_acts_on_its_net
     assert same(d, base_d) and not same(g, base_g)  # the mode-seeking term is G's only
     g, d = stepped(r1=0.0)
     assert not same(d, base_d)  # R1 is D's
+    without = {k: v for k, v in CLASS_GAN.items() if k != "class_guidance"}
+    torch.manual_seed(0)
+    training = TranslatorTraining(dict(SETTINGS, **without), "cpu", num_classes=2)
+    training.step(*batch())
+    # weight 0 is the step without the term, bit for bit (no head is built, so no weight is drawn for it)
+    assert same(weights(training.generator), base_g) and same(weights(training.discriminator), base_d)
+
+
+def test_the_class_head_learns_the_class_of_real_images():
+    """With class guidance, D's class head is trained on the real images' classes."""
+    torch.manual_seed(0)
+    training = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, class_guidance=1.0, diffaugment=False)),
+                                  "cpu", num_classes=2)
+    x = torch.rand(4, 3, 32, 32) * 2 - 1
+    y = torch.cat([torch.full((2, 3, 32, 32), -0.8), torch.full((2, 3, 32, 32), 0.8)])  # dark and bright classes
+    labels = torch.tensor([0, 0, 1, 1])
+
+    def head_loss(images):
+        with torch.no_grad():
+            return float(torch.nn.functional.cross_entropy(training.discriminator.judge(images, labels)[1], labels))
+
+    before = head_loss(y)
+    for _ in range(30):
+        training.step(x, y, labels)
+    assert head_loss(y) < 0.5 * before
+
+
+def test_class_guidance_moves_the_generator_through_the_class_head():
+    """With D held still (learning rate 0), G's update differs between guidance weights only through G's own
+    term w·CE(h(G(x)), c); that term lowers the head's cross-entropy of G's outputs."""
+    def stepped(weight, steps=1):
+        torch.manual_seed(0)
+        training = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, class_guidance=weight, diffaugment=False,
+                                                            mode_seeking=0.0)), "cpu", num_classes=2)
+        for group in training.opt_d.param_groups:
+            group["lr"] = 0.0
+        x, y, labels = batch()
+        for _ in range(steps):
+            training.step(x, y, labels)
+        with torch.no_grad():
+            ce = torch.nn.functional.cross_entropy(training.discriminator.judge(training.generator(x), labels)[1],
+                                                   labels)
+        return weights(training.generator), float(ce)
+
+    (faint, ce_faint), (strong, ce_strong) = stepped(1e-9, 5), stepped(10.0, 5)
+    assert any(not torch.equal(a, b) for a, b in zip(faint, strong))
+    assert ce_strong < ce_faint
 
 
 def pair_data(fixed: bool) -> PairData:
@@ -140,7 +188,8 @@ def test_auto_picks_the_objective_from_the_pair_kind():
     assert resolve_objective("auto", pair_data(fixed=False))[0] == "class_gan"
     assert resolve_objective("auto", pair_data(fixed=True))[0] == "pix2pix"
     assert resolve_objective("pix2pix", pair_data(fixed=False)) == ("pix2pix", "as set")
-    translation = {"preset": "fast", "class_gan": {"r1": 0.1, "diffaugment": True, "mode_seeking": 1.0}}
+    translation = {"preset": "fast", "class_gan": {"r1": 0.1, "diffaugment": True, "mode_seeking": 1.0,
+                                                   "class_guidance": 0.0}}
     assert objective_settings(SETTINGS, translation, "pix2pix") is SETTINGS  # pix2pix: the preset, untouched
     assert objective_settings(SETTINGS, translation, "class_gan") == dict(SETTINGS, **CLASS_GAN)
     with pytest.raises(ValueError, match="presets.fast.batch_size"):

@@ -299,7 +299,7 @@ class ProjectionDiscriminator(nn.Module):
     Input ``N x in_channels x S x S`` and ``N`` class indices; output ``N x 1 x H' x W'`` raw logits."""
 
     def __init__(self, num_classes: int, ndf: int = 64, layers: int = 3, kernel: int = 4,
-                 in_channels: int = 3) -> None:
+                 in_channels: int = 3, class_head: bool = False) -> None:
         super().__init__()
         check_kernel(kernel)
         if isinstance(layers, bool) or not isinstance(layers, int) or layers < 1:
@@ -321,15 +321,24 @@ class ProjectionDiscriminator(nn.Module):
         self.embedding = nn.Embedding(num_classes, target)
         self.apply(init_weights)
         nn.init.normal_(self.embedding.weight, 0.0, 0.02)
+        # built last, so that without it the weights (and every draw) are those of the plain discriminator
+        self.class_head = nn.Linear(target, num_classes) if class_head else None
 
     def forward(self, x: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+        return self.judge(x, labels)[0]
+
+    def judge(self, x: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The patch logits of :meth:`forward` and, with ``class_head``, class logits (N x num_classes) of a
+        linear layer on the trunk's features averaged over the patches (the auxiliary classifier of AC-GAN,
+        Odena et al. 2017); None without it."""
         check_image_batch(x, self.in_channels, None, type(self).__name__)
         if labels.shape != (x.shape[0],):
             raise ValueError(f"{type(self).__name__}: expected {x.shape[0]} class indices, got shape "
                              f"{tuple(labels.shape)}")
         features = self.trunk(x)
         projection = (self.embedding(labels.to(x.device))[:, :, None, None] * features).sum(dim=1, keepdim=True)
-        return self.logit(features) + projection
+        classes = None if self.class_head is None else self.class_head(features.mean(dim=(2, 3)))
+        return self.logit(features) + projection, classes
 
 
 def build_discriminator(kind: str, size: int, ndf: int, kernel: int, patch_layers: int,

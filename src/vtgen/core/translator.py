@@ -57,7 +57,7 @@ class TranslatorTraining:
     ``input_channels`` is the generator's input: the 3 image channels plus those of a
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
-    ``diffaugment`` and ``mode_seeking`` (see :meth:`class_step`) and needs ``num_classes``.
+    ``diffaugment``, ``mode_seeking`` and ``class_guidance`` (see :meth:`class_step`) and needs ``num_classes``.
     """
 
     def __init__(self, settings: dict, device: torch.device | str = "cpu", precision: str = "fp32",
@@ -71,8 +71,9 @@ class TranslatorTraining:
         size, kernel = settings["size"], settings["kernel"]
         self.generator = UNetGenerator(size, settings["ngf"], kernel, in_channels=input_channels).to(self.device).train()
         if self.objective == "class_gan":
-            self.discriminator = ProjectionDiscriminator(num_classes, settings["ndf"], settings["patch_layers"],
-                                                         kernel).to(self.device).train()
+            self.discriminator = ProjectionDiscriminator(
+                num_classes, settings["ndf"], settings["patch_layers"], kernel,
+                class_head=bool(settings.get("class_guidance", 0.0))).to(self.device).train()
         else:
             self.discriminator = build_discriminator(settings["discriminator"], size, settings["ndf"], kernel,
                                                      settings["patch_layers"], input_channels + 3).to(self.device).train()
@@ -165,30 +166,39 @@ class TranslatorTraining:
         then G minimises L(D(A(G(x)), c), real) + mode_seeking·max(0, 1 − r), with
         r = mean|G(x₂ₖ) − G(x₂ₖ₊₁)| / mean|y₂ₖ − y₂ₖ₊₁| (:func:`mode_seeking_loss`: Mao et al. 2019, eq. 3,
         with the second input of the class in place of a second noise draw, clipped as in DSGAN).
+        With ``class_guidance`` w > 0, D's class head h also learns the class of the real images,
+        D += w·CE(h(A(y)), c), and G is asked to be recognised as its input's class, G += w·CE(h(A(G(x))), c)
+        (AC-GAN, Odena et al. 2017, with the classifier trained on real images only): a generator that is
+        not told the class must read it from its input.
         ``loss_g_l1`` is |G(x) − y| against the random partner: logged, never trained on.
         """
         cfg = self.settings
         augment = diff_augment if cfg.get("diffaugment", True) else (lambda images: images)
         r1, seeking = cfg.get("r1", 0.0), cfg.get("mode_seeking", 0.0)
+        guidance = cfg.get("class_guidance", 0.0)
         labels = labels.to(self.device)
         with self._autocast():
             fake = self.generator(x)
         real = y.detach().requires_grad_(bool(r1))
         with self._autocast():
-            d_real = self.discriminator(augment(real), labels)
+            d_real, class_real = self.discriminator.judge(augment(real), labels)
             d_fake = self.discriminator(augment(fake.detach()), labels)
         loss_d = 0.5 * (self._loss(d_real, True) + self._loss(d_fake, False))
         if r1:
             loss_d = loss_d + r1 * r1_penalty(d_real, real)
+        if guidance:
+            loss_d = loss_d + guidance * F.cross_entropy(class_real.float(), labels)
         self.opt_d.zero_grad(set_to_none=True)
         loss_d.backward()
         self.opt_d.step()
         self.discriminator.requires_grad_(False)
         try:
             with self._autocast():
-                d_fake = self.discriminator(augment(fake), labels)
+                d_fake, class_fake = self.discriminator.judge(augment(fake), labels)
             loss_g_gan = self._loss(d_fake, True)
             loss_g = loss_g_gan + seeking * mode_seeking_loss(fake.float(), y) if seeking else loss_g_gan
+            if guidance:
+                loss_g = loss_g + guidance * F.cross_entropy(class_fake.float(), labels)
             self.opt_g.zero_grad(set_to_none=True)
             loss_g.backward()
             self.opt_g.step()
