@@ -14,7 +14,7 @@ SETTINGS = {"size": 32, "ngf": 8, "ndf": 8, "kernel": 4, "discriminator": "patch
             "gan_loss": "bce", "l1_weight": 100.0, "optimizer": "adam", "lr": 2e-4, "betas": [0.5, 0.999],
             "batch_size": 4, "iterations": 4, "noise": False}
 CLASS_GAN = {"objective": "class_gan", "r1": 0.1, "diffaugment": True, "mode_seeking": 1.0,
-             "class_guidance": 0.0}  # the params.yaml default
+             "class_guidance": 0.0, "skips": None}  # the params.yaml default
 
 
 def test_translation_moves_the_image_by_whole_pixels_and_fills_zeros():
@@ -189,7 +189,7 @@ def test_auto_picks_the_objective_from_the_pair_kind():
     assert resolve_objective("auto", pair_data(fixed=True))[0] == "pix2pix"
     assert resolve_objective("pix2pix", pair_data(fixed=False)) == ("pix2pix", "as set")
     translation = {"preset": "fast", "class_gan": {"r1": 0.1, "diffaugment": True, "mode_seeking": 1.0,
-                                                   "class_guidance": 0.0}}
+                                                   "class_guidance": 0.0, "skips": "all"}}
     assert objective_settings(SETTINGS, translation, "pix2pix") is SETTINGS  # pix2pix: the preset, untouched
     assert objective_settings(SETTINGS, translation, "class_gan") == dict(SETTINGS, **CLASS_GAN)
     with pytest.raises(ValueError, match="presets.fast.batch_size"):
@@ -275,3 +275,22 @@ def test_class_pairs_do_not_collapse_to_one_image_per_class():
     ratios = [spread_ratio(outputs[[c == name for c in test.classes]], test.targets[[c == name for c in test.classes]],
                            side=32) for name in names]
     assert sorted(ratios)[1] >= 0.5, dict(zip(names, ratios))
+
+
+def test_a_generator_with_fewer_skips_is_rebuilt_as_trained(tmp_path):
+    """The saved settings carry ``skips``, so `vtgen generate` loads the network that was trained."""
+    from vtgen.io.checkpoints import load_translator, save_generator
+
+    settings = objective_settings(dict(SETTINGS), {"preset": "fast", "class_gan": dict(
+        {k: v for k, v in CLASS_GAN.items() if k != "objective"}, skips=1)}, "class_gan")
+    training = TranslatorTraining(settings, "cpu", num_classes=2)
+    training.step(*batch())
+    save_generator(tmp_path / "generator.pt", training.generator, settings, "v2t", "all")
+    loaded, _ = load_translator(tmp_path)
+    assert loaded.skips == 1
+    x = batch()[0]
+    with torch.no_grad():
+        assert torch.equal(loaded(x), training.generator.eval()(x))
+    everything = objective_settings(dict(SETTINGS), {"preset": "fast", "class_gan": dict(
+        {k: v for k, v in CLASS_GAN.items() if k != "objective"}, skips="all")}, "class_gan")
+    assert TranslatorTraining(everything, "cpu", num_classes=2).generator.skips == 4  # 32 px: depth 5

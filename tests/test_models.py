@@ -75,6 +75,32 @@ def test_unet_depth(size, depth):
     assert len(net.encoder) == len(net.decoder) == depth
 
 
+def test_generator_keeps_only_the_deepest_skips():
+    """skips = k: the k skip connections nearest the bottleneck stay; an input change confined to fine detail
+    that the encoder's first level sees reaches the output only through the kept ones."""
+    torch.manual_seed(0)
+    full = UNetGenerator(32, ngf=4)
+    torch.manual_seed(0)
+    same = UNetGenerator(32, ngf=4, skips=4)  # 32 px: depth 5, 4 skips = all
+    assert all(torch.equal(a, b) for a, b in zip(full.state_dict().values(), same.state_dict().values()))
+    for k in range(5):
+        net = UNetGenerator(32, ngf=4, skips=k).eval()
+        joined = [level for level in range(1, 5)
+                  if net.decoder[level][0].in_channels == 2 * net.encoder[4 - level][0].out_channels]
+        assert joined == list(range(1, k + 1))
+        assert net(rand_images(2, 32)).shape == (2, 3, 32, 32)
+    # with no skips, the output is a function of the 1x1 bottleneck alone
+    net = UNetGenerator(32, ngf=4, skips=0).eval()
+    x = rand_images(1, 32)
+    bottleneck = x
+    for block in net.encoder:
+        bottleneck = block(bottleneck)
+    assert torch.equal(net(x), net.decoder[4](net.decoder[3](net.decoder[2](net.decoder[1](net.decoder[0](bottleneck))))))
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="skips"):
+            UNetGenerator(32, ngf=4, skips=bad)
+
+
 def test_generator_bottleneck_is_one_by_one():
     net = UNetGenerator(64, ngf=4, kernel=5)
     x = rand_images(2, 64)

@@ -110,6 +110,8 @@ class UNetGenerator(nn.Module):
     The encoder has ``depth = log2(size)`` stride-2 levels (bottleneck 1x1); the decoder mirrors it and
     concatenates each upsampled map with the encoder output of equal resolution. Dropout follows the
     ReLU of the ``min(3, depth - 2)`` decoder levels nearest the bottleneck (omitted if ``dropout == 0``).
+    ``skips`` keeps only that many skip connections, the ones nearest the bottleneck (coarse layout), and
+    drops the finer ones that copy the input's geometry into the output (None: all ``depth - 1``, the U-Net).
     """
 
     def __init__(
@@ -120,6 +122,7 @@ class UNetGenerator(nn.Module):
         in_channels: int = 3,
         out_channels: int = 3,
         dropout: float = 0.5,
+        skips: int | None = None,
     ) -> None:
         super().__init__()
         check_kernel(kernel)
@@ -127,6 +130,9 @@ class UNetGenerator(nn.Module):
             raise ValueError(f"dropout must be in [0, 1), got {dropout!r}")
         self.size = check_size(size)
         self.depth = unet_depth(size)
+        if skips is not None and (isinstance(skips, bool) or not isinstance(skips, int) or skips < 0):
+            raise ValueError(f"skips must be None or an integer >= 0, got {skips!r}")
+        self.skips = self.depth - 1 if skips is None else min(skips, self.depth - 1)
         self.in_channels = in_channels
         self.out_channels = out_channels
         depth = self.depth
@@ -152,7 +158,7 @@ class UNetGenerator(nn.Module):
         self.dropout_levels = min(3, depth - 2) if dropout > 0 else 0
         decoder: list[nn.Module] = []
         for level in range(depth):
-            source = widths[depth - 1] if level == 0 else 2 * widths[depth - 1 - level]
+            source = widths[depth - 1] if level == 0 else (2 if level <= self.skips else 1) * widths[depth - 1 - level]
             if level == depth - 1:
                 block = nn.Sequential(upsampling_conv(source, out_channels, kernel, bias=True), nn.Tanh())
             else:
@@ -177,7 +183,8 @@ class UNetGenerator(nn.Module):
             skips.append(x)
         x = self.decoder[0](skips[-1])
         for level in range(1, self.depth):
-            x = self.decoder[level](torch.cat([x, skips[self.depth - 1 - level]], dim=1))
+            joined = torch.cat([x, skips[self.depth - 1 - level]], dim=1) if level <= self.skips else x
+            x = self.decoder[level](joined)
         return x
 
 

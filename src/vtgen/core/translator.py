@@ -69,7 +69,8 @@ class TranslatorTraining:
             raise ValueError(f"unknown objective '{self.objective}' (allowed: {', '.join(OBJECTIVES)})")
         self.settings, self.device, self.precision = settings, torch.device(device), precision
         size, kernel = settings["size"], settings["kernel"]
-        self.generator = UNetGenerator(size, settings["ngf"], kernel, in_channels=input_channels).to(self.device).train()
+        self.generator = UNetGenerator(size, settings["ngf"], kernel, in_channels=input_channels,
+                                       skips=settings.get("skips")).to(self.device).train()
         if self.objective == "class_gan":
             self.discriminator = ProjectionDiscriminator(
                 num_classes, settings["ndf"], settings["patch_layers"], kernel,

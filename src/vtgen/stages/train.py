@@ -213,7 +213,10 @@ def objective_settings(settings: dict, translation: dict, objective: str) -> dic
     if settings["batch_size"] < 2 or settings["batch_size"] % 2:
         raise ValueError(f"the class_gan objective pairs the rows of a batch: batch_size must be even and >= 2, "
                          f"got {settings['batch_size']} (presets.{translation['preset']}.batch_size)")
-    return dict(settings, objective="class_gan", **translation["class_gan"])
+    terms = dict(translation["class_gan"])
+    if terms.get("skips") == "all":
+        terms["skips"] = None  # the generator's own spelling of every skip connection
+    return dict(settings, objective="class_gan", **terms)
 
 
 def validation_l1(generator: UNetGenerator, validation: PairData, batch_size: int = 32,
