@@ -7,14 +7,14 @@ import torch
 
 from vtgen.core.augment import cutout, diff_augment, translation
 from vtgen.core.models import ProjectionDiscriminator
-from vtgen.core.translator import mode_seeking_loss, r1_penalty, TranslatorTraining
+from vtgen.core.translator import mode_seeking_loss, r1_penalty, statistics_loss, TranslatorTraining
 from vtgen.stages.train import _draw, objective_settings, PairData, resolve_objective
 
 SETTINGS = {"size": 32, "ngf": 8, "ndf": 8, "kernel": 4, "discriminator": "patch", "patch_layers": 2,
             "gan_loss": "bce", "l1_weight": 100.0, "optimizer": "adam", "lr": 2e-4, "betas": [0.5, 0.999],
             "batch_size": 4, "iterations": 4, "noise": False}
 CLASS_GAN = {"objective": "class_gan", "r1": 0.1, "diffaugment": True, "mode_seeking": 1.0,
-             "class_guidance": 0.0, "skips": None}  # the params.yaml default
+             "statistics": 0.0, "class_guidance": 0.0, "skips": None}  # the params.yaml default
 
 
 def test_translation_moves_the_image_by_whole_pixels_and_fills_zeros():
@@ -82,6 +82,22 @@ def test_mode_seeking_loss_on_known_inputs():
         mode_seeking_loss(outputs[:3], targets[:3])
 
 
+def test_statistics_loss_on_known_inputs():
+    flat = torch.zeros(2, 3, 16, 16)
+    assert float(statistics_loss(flat + 0.5, flat)) == pytest.approx(0.5)  # means differ by 0.5; no contrast, no spectrum
+    torch.manual_seed(0)
+    images = torch.rand(2, 3, 16, 16) * 2 - 1
+    assert float(statistics_loss(images, images.clone())) == 0.0
+    # stripes of period 4 px have the contrast and a spectrum (power at radius 4) a flat image lacks
+    board = ((torch.arange(16)[None, :] // 2) % 2 * 2.0 - 1).expand(16, 16)
+    checker = board.expand(2, 3, 16, 16)
+    loss = float(statistics_loss(checker, flat))
+    assert loss > float((checker.std(dim=(2, 3)) - 0).abs().mean())  # more than the contrast part alone
+    outputs = torch.zeros(2, 3, 16, 16, requires_grad=True)
+    statistics_loss(outputs + 0.1 * images, checker).backward()
+    assert outputs.grad is not None and outputs.grad.abs().sum() > 0
+
+
 def test_r1_penalty_on_a_linear_discriminator():
     real = torch.rand(2, 3, 4, 4).requires_grad_(True)
     logits = (3.0 * real).sum(dim=(1, 2, 3))  # gradient 3 at every pixel
@@ -127,6 +143,8 @@ def test_the_l1_weight_does_not_act_on_class_pairs_and_each_term_acts_on_its_net
     assert same(d, base_d) and not same(g, base_g)  # the mode-seeking term is G's only
     g, d = stepped(r1=0.0)
     assert not same(d, base_d)  # R1 is D's
+    g, d = stepped(statistics=1.0)
+    assert same(d, base_d) and not same(g, base_g)  # the statistics term is G's only
     without = {k: v for k, v in CLASS_GAN.items() if k != "class_guidance"}
     torch.manual_seed(0)
     training = TranslatorTraining(dict(SETTINGS, **without), "cpu", num_classes=2)
@@ -189,7 +207,7 @@ def test_auto_picks_the_objective_from_the_pair_kind():
     assert resolve_objective("auto", pair_data(fixed=True))[0] == "pix2pix"
     assert resolve_objective("pix2pix", pair_data(fixed=False)) == ("pix2pix", "as set")
     translation = {"preset": "fast", "class_gan": {"r1": 0.1, "diffaugment": True, "mode_seeking": 1.0,
-                                                   "class_guidance": 0.0, "skips": "all"}}
+                                                   "statistics": 0.0, "class_guidance": 0.0, "skips": "all"}}
     assert objective_settings(SETTINGS, translation, "pix2pix") is SETTINGS  # pix2pix: the preset, untouched
     assert objective_settings(SETTINGS, translation, "class_gan") == dict(SETTINGS, **CLASS_GAN)
     with pytest.raises(ValueError, match="presets.fast.batch_size"):

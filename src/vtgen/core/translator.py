@@ -57,7 +57,8 @@ class TranslatorTraining:
     ``input_channels`` is the generator's input: the 3 image channels plus those of a
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
-    ``diffaugment``, ``mode_seeking`` and ``class_guidance`` (see :meth:`class_step`) and needs ``num_classes``.
+    ``diffaugment``, ``mode_seeking``, ``statistics``, ``class_guidance`` and ``skips`` (see :meth:`class_step`)
+    and needs ``num_classes``.
     """
 
     def __init__(self, settings: dict, device: torch.device | str = "cpu", precision: str = "fp32",
@@ -167,6 +168,9 @@ class TranslatorTraining:
         then G minimises L(D(A(G(x)), c), real) + mode_seeking·max(0, 1 − r), with
         r = mean|G(x₂ₖ) − G(x₂ₖ₊₁)| / mean|y₂ₖ − y₂ₖ₊₁| (:func:`mode_seeking_loss`: Mao et al. 2019, eq. 3,
         with the second input of the class in place of a second noise draw, clipped as in DSGAN).
+        With ``statistics`` w > 0, G += w·:func:`statistics_loss` (G(x), y): colour, contrast and power spectrum
+        of each output against those of the real image of its class in its row (summary statistics only, so
+        their pull towards the class's typical values cannot copy or average the images themselves).
         With ``class_guidance`` w > 0, D's class head h also learns the class of the real images,
         D += w·CE(h(A(y)), c), and G is asked to be recognised as its input's class, G += w·CE(h(A(G(x))), c)
         (AC-GAN, Odena et al. 2017, with the classifier trained on real images only): a generator that is
@@ -200,6 +204,9 @@ class TranslatorTraining:
             loss_g = loss_g_gan + seeking * mode_seeking_loss(fake.float(), y) if seeking else loss_g_gan
             if guidance:
                 loss_g = loss_g + guidance * F.cross_entropy(class_fake.float(), labels)
+            statistics = cfg.get("statistics", 0.0)
+            if statistics:
+                loss_g = loss_g + statistics * statistics_loss(fake.float(), y)
             self.opt_g.zero_grad(set_to_none=True)
             loss_g.backward()
             self.opt_g.step()
@@ -233,6 +240,17 @@ def r1_penalty(real_logits: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
     (Mescheder et al. 2018, eq. 9, without γ); differentiable (create_graph) so D can be trained on it."""
     (gradient,) = torch.autograd.grad(real_logits.float().sum(), real, create_graph=True)
     return 0.5 * gradient.pow(2).sum(dim=tuple(range(1, gradient.dim()))).mean()
+
+
+def statistics_loss(outputs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """Mean over images of |μ(o) − μ(t)|₁/3 + |σ(o) − σ(t)|₁/3 + |s(o) − s(t)|₁/K: per-channel mean μ and standard
+    deviation σ over the pixels, and s the log10 radial power profile of the grey (K bins; the score stage's
+    spectrum metric, :func:`vtgen.core.spectrum.rgb_log_radial_profiles`). ``targets`` is data (detached)."""
+    targets = targets.detach().float()
+    mean = (outputs.mean(dim=(2, 3)) - targets.mean(dim=(2, 3))).abs().mean()
+    spread = (outputs.std(dim=(2, 3)) - targets.std(dim=(2, 3))).abs().mean()
+    spectrum = (rgb_log_radial_profiles(outputs) - rgb_log_radial_profiles(targets)).abs().mean()
+    return mean + spread + spectrum
 
 
 def mode_seeking_loss(outputs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
