@@ -59,10 +59,16 @@ def test_projection_discriminator_judges_the_image_as_its_class():
     assert a.shape == (2, 1, 7, 7)  # 32 -> 16 -> 8 by the strided convs, 7 by the k=4 stride-1 conv
     assert not torch.allclose(a, b)  # the class enters through the projection
     assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in d.modules())  # per-image R1 gradients
-    # the projection is linear in the embedding: zero embeddings leave the unconditional logits
+    # the class enters only through its embedding: two classes with one embedding get the same logits
     with torch.no_grad():
-        d.embedding.weight.zero_()
-    assert torch.equal(d(x, torch.tensor([0, 0])), d(x, torch.tensor([2, 1])))
+        d.embedding.parametrizations.weight.original[1] = d.embedding.parametrizations.weight.original[0]
+    d.eval()  # spectral norm's power iteration stands still, so both calls see the same weights
+    assert torch.equal(d(x, torch.tensor([0, 0])), d(x, torch.tensor([1, 1])))
+    assert not torch.equal(d(x, torch.tensor([0, 0])), d(x, torch.tensor([2, 2])))
+    # spectral normalisation: every layer's largest singular value is 1
+    for module in d.modules():
+        if isinstance(module, torch.nn.Conv2d):
+            assert float(torch.linalg.matrix_norm(module.weight.detach().flatten(1), ord=2)) == pytest.approx(1.0, rel=0.05)
     with pytest.raises(ValueError, match="class indices"):
         d(x, torch.tensor([0]))
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import torch
 from torch import nn
+from torch.nn.utils.parametrizations import spectral_norm
 
 ALLOWED_KERNELS = (4, 5)
 DISCRIMINATOR_KINDS = ("global", "patch")
@@ -302,7 +303,8 @@ class ProjectionDiscriminator(nn.Module):
     of class c*. A PatchGAN trunk without BatchNorm (``layers`` stride-2 convs and one stride-1 conv,
     LeakyReLU 0.2) gives features φ (N x K x H' x W'); each patch's logit is ψ(φ) + ⟨e_c, φ⟩, a 1x1 conv plus
     the inner product with a learned embedding of the class (the projection discriminator of Miyato &
-    Koyama 2018, eq. 3, per patch). No BatchNorm, so the R1 penalty's input gradient is per image.
+    Koyama 2018, eq. 3, per patch), every layer spectrally normalised. No BatchNorm, so the R1 penalty's
+    input gradient is per image.
     Input ``N x in_channels x S x S`` and ``N`` class indices; output ``N x 1 x H' x W'`` raw logits."""
 
     def __init__(self, num_classes: int, ndf: int = 64, layers: int = 3, kernel: int = 4,
@@ -330,6 +332,12 @@ class ProjectionDiscriminator(nn.Module):
         nn.init.normal_(self.embedding.weight, 0.0, 0.02)
         # built last, so that without it the weights (and every draw) are those of the plain discriminator
         self.class_head = nn.Linear(target, num_classes) if class_head else None
+        # Spectral normalisation (Miyato et al. 2018), as in the projection discriminator's paper: each layer's
+        # largest singular value is 1. Without it (and without BatchNorm) the N(0, 0.02) weights shrink the
+        # signal about 3x per layer: logits of std 0.0015 at the start, and D stayed at chance (loss 0.69).
+        for module in self.modules():
+            if isinstance(module, (nn.Conv2d, nn.Linear, nn.Embedding)):
+                spectral_norm(module)
 
     def forward(self, x: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
         return self.judge(x, labels)[0]
