@@ -14,7 +14,7 @@ SETTINGS = {"size": 32, "ngf": 8, "ndf": 8, "kernel": 4, "discriminator": "patch
             "gan_loss": "bce", "l1_weight": 100.0, "optimizer": "adam", "lr": 2e-4, "betas": [0.5, 0.999],
             "batch_size": 4, "iterations": 4, "noise": False}
 CLASS_GAN = {"objective": "class_gan", "r1": 0.1, "diffaugment": True, "mode_seeking": 1.0,
-             "statistics": 0.0, "class_guidance": 0.0, "skips": None}  # the params.yaml default
+             "statistics": 0.0, "class_guidance": 0.0, "skips": None, "d_lr_ratio": 1.0}  # the params.yaml default
 
 
 def test_translation_moves_the_image_by_whole_pixels_and_fills_zeros():
@@ -213,7 +213,8 @@ def test_auto_picks_the_objective_from_the_pair_kind():
     assert resolve_objective("auto", pair_data(fixed=True))[0] == "pix2pix"
     assert resolve_objective("pix2pix", pair_data(fixed=False)) == ("pix2pix", "as set")
     translation = {"preset": "fast", "class_gan": {"r1": 0.1, "diffaugment": True, "mode_seeking": 1.0,
-                                                   "statistics": 0.0, "class_guidance": 0.0, "skips": "all"}}
+                                                   "statistics": 0.0, "class_guidance": 0.0, "skips": "all",
+                                                   "d_lr_ratio": 1.0}}
     assert objective_settings(SETTINGS, translation, "pix2pix") is SETTINGS  # pix2pix: the preset, untouched
     assert objective_settings(SETTINGS, translation, "class_gan") == dict(SETTINGS, **CLASS_GAN)
     with pytest.raises(ValueError, match="presets.fast.batch_size"):
@@ -318,3 +319,12 @@ def test_a_generator_with_fewer_skips_is_rebuilt_as_trained(tmp_path):
     everything = objective_settings(dict(SETTINGS), {"preset": "fast", "class_gan": dict(
         {k: v for k, v in CLASS_GAN.items() if k != "objective"}, skips="all")}, "class_gan")
     assert TranslatorTraining(everything, "cpu", num_classes=2).generator.skips == 4  # 32 px: depth 5
+
+
+def test_the_discriminator_learning_rate_ratio_acts_on_class_gan_only():
+    torch.manual_seed(0)
+    training = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, d_lr_ratio=4.0)), "cpu", num_classes=2)
+    assert [g["lr"] for g in training.opt_d.param_groups] == [4 * SETTINGS["lr"]]
+    assert [g["lr"] for g in training.opt_g.param_groups] == [SETTINGS["lr"]]
+    pix2pix = TranslatorTraining(dict(SETTINGS, d_lr_ratio=4.0), "cpu")  # pix2pix keeps the preset's rates
+    assert [g["lr"] for g in pix2pix.opt_d.param_groups] == [SETTINGS["lr"]]

@@ -57,8 +57,8 @@ class TranslatorTraining:
     ``input_channels`` is the generator's input: the 3 image channels plus those of a
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
-    ``diffaugment``, ``mode_seeking``, ``statistics``, ``class_guidance`` and ``skips`` (see :meth:`class_step`)
-    and needs ``num_classes``.
+    ``diffaugment``, ``mode_seeking``, ``statistics``, ``class_guidance``, ``skips`` (see :meth:`class_step`) and
+    ``d_lr_ratio`` (D's learning rate over G's), and needs ``num_classes``.
     """
 
     def __init__(self, settings: dict, device: torch.device | str = "cpu", precision: str = "fp32",
@@ -79,9 +79,11 @@ class TranslatorTraining:
         else:
             self.discriminator = build_discriminator(settings["discriminator"], size, settings["ndf"], kernel,
                                                      settings["patch_layers"], input_channels + 3).to(self.device).train()
-        self.opt_g, self.opt_d = (make_optimizer(net.parameters(), settings["optimizer"], settings["lr"],
+        # class_gan's d_lr_ratio: D's learning rate over G's (two time-scale update rule, Heusel et al. 2017)
+        d_ratio = settings.get("d_lr_ratio", 1.0) if self.objective == "class_gan" else 1.0
+        self.opt_g, self.opt_d = (make_optimizer(net.parameters(), settings["optimizer"], settings["lr"] * ratio,
                                                  settings["betas"], multi_tensor_on=self.device.type)
-                                  for net in (self.generator, self.discriminator))
+                                  for net, ratio in ((self.generator, 1.0), (self.discriminator, d_ratio)))
 
     def _autocast(self):
         if self.precision == "bf16":
