@@ -39,7 +39,7 @@ from vtgen.core.classifier import predict, train_classifier, wilson_interval
 from vtgen.core.distribution import (classifier_encoder, diversity_ratio, fid, flat_colour_set, grey_pixels,
                                      image_features, kid, mean_image_set, median_interval, memorisation, prdc_scores)
 from vtgen.core.domain import DIRECTIONS
-from vtgen.io.images import read_tiles, write_png
+from vtgen.io.images import labelled_sheet, read_tiles, write_png
 from vtgen.io.params import model_settings, validate_params
 from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
 from vtgen.stages.generate import translate
@@ -109,18 +109,17 @@ def run_variant(params, pairs, splits, direction, overrides, seed, iterations, t
 
 def write_sheet(path: Path, generated: torch.Tensor, context: dict, per_class: int = 4) -> None:
     """One row per class: ``per_class`` test inputs, their translations, and as many real test targets of the
-    class (the pictures to look at beside the numbers)."""
+    class (the pictures to look at beside the numbers), as the report's grids are drawn."""
+    def images(batch: torch.Tensor) -> list[np.ndarray]:
+        return list(batch[:per_class].permute(0, 2, 3, 1).numpy())
+
     rows = []
     for c in context["classes"]:
         inputs = torch.from_numpy(context["test_input_classes"] == c)
         targets = torch.from_numpy(context["test_target_classes"] == c)
-        cells = [context["test_inputs"][inputs][:per_class], generated[inputs][:per_class],
-                 context["test_targets"][targets][:per_class]]
-        side = generated.shape[-1]
-        cells = [torch.cat([resized(t, side), torch.zeros(per_class - len(t), 3, side, side, dtype=torch.uint8)])
-                 for t in cells]
-        rows.append(torch.cat([torch.cat(list(t), dim=2) for t in cells], dim=2))
-    write_png(path, torch.cat(rows, dim=1).permute(1, 2, 0).contiguous().numpy())
+        rows.append((c, [images(context["test_inputs"][inputs]), images(generated[inputs]),
+                         images(context["test_targets"][targets])]))
+    write_png(path, labelled_sheet(rows, ["input", "generated", "real of the class"], per_class))
 
 
 def goal_numbers(generated: torch.Tensor, classes: np.ndarray, context: dict) -> dict:
