@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from vtgen.core.augment import cutout, diff_augment, translation
+from vtgen.core.augment import augment_policy, colour, cutout, diff_augment, translation
 from vtgen.core.models import ProjectionDiscriminator
 from vtgen.core.translator import mode_seeking_loss, r1_penalty, statistics_loss, TranslatorTraining
 from vtgen.stages.train import _draw, objective_settings, PairData, resolve_objective
@@ -49,6 +49,25 @@ def test_diff_augment_keeps_shape_and_passes_gradients():
     assert out.shape == x.shape and out.dtype == x.dtype
     out.sum().backward()
     assert x.grad is not None and x.grad.abs().sum() > 0
+
+
+def test_an_augment_policy_applies_the_named_transforms_in_order():
+    x = torch.rand(4, 3, 16, 16) * 2 - 1
+    assert augment_policy(True) == ("colour", "translation", "cutout") and augment_policy(False) == ()
+    assert augment_policy(["cutout", "translation"]) == ("translation", "cutout")
+    with pytest.raises(ValueError, match="class_gan.diffaugment.*'flip'"):
+        augment_policy(["translation", "flip"])
+    torch.manual_seed(3)
+    expected = cutout(translation(x))
+    torch.manual_seed(3)
+    assert torch.equal(diff_augment(x, augment_policy(["translation", "cutout"])), expected)
+    torch.manual_seed(3)
+    expected = cutout(translation(colour(x)))
+    torch.manual_seed(3)
+    assert torch.equal(diff_augment(x), expected)  # the default policy is all three
+    torch.manual_seed(3)
+    shifted = diff_augment(x, ("translation",))
+    assert torch.isin(shifted[shifted != 0], x).all()  # no colour change: every kept pixel keeps its value
 
 
 def test_projection_discriminator_judges_the_image_as_its_class():

@@ -54,7 +54,26 @@ def cutout(x: torch.Tensor, fraction: float = CUTOUT_FRACTION) -> torch.Tensor:
     return x * (~inside)[:, None].to(x.dtype)
 
 
-def diff_augment(x: torch.Tensor) -> torch.Tensor:
-    """Colour, then translation, then cutout (the "color,translation,cutout" policy of Zhao et al. 2020),
-    each drawn independently per image. Shape and dtype are kept; gradients flow to ``x``."""
-    return cutout(translation(colour(x)))
+POLICY = ("colour", "translation", "cutout")  # the order transforms apply in (Zhao et al. 2020's default policy)
+
+
+def augment_policy(setting: bool | list[str]) -> tuple[str, ...]:
+    """The transforms a ``class_gan.diffaugment`` setting names, in :data:`POLICY` order: ``true`` = all three,
+    ``false`` = none, or a list of their names. Raises ValueError naming an unknown transform."""
+    if isinstance(setting, bool):
+        return POLICY if setting else ()
+    unknown = sorted(set(setting) - set(POLICY))
+    if unknown:
+        raise ValueError(f"class_gan.diffaugment: unknown transform {unknown} (allowed: {', '.join(POLICY)})")
+    return tuple(name for name in POLICY if name in setting)
+
+
+def diff_augment(x: torch.Tensor, policy: tuple[str, ...] = POLICY) -> torch.Tensor:
+    """The transforms of ``policy`` in :data:`POLICY` order (the default: colour, then translation, then cutout,
+    the "color,translation,cutout" policy of Zhao et al. 2020), each drawn independently per image. Shape and
+    dtype are kept; gradients flow to ``x``."""
+    transforms = {"colour": colour, "translation": translation, "cutout": cutout}
+    for name in POLICY:
+        if name in policy:
+            x = transforms[name](x)
+    return x

@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from vtgen.core.augment import diff_augment
+from vtgen.core.augment import augment_policy, diff_augment
 from vtgen.core.spectrum import rgb_log_radial_profiles
 from vtgen.core.gan import adversarial_loss, make_optimizer
 from vtgen.core.models import build_discriminator, conditional_pair, ProjectionDiscriminator, UNetGenerator
@@ -163,8 +163,9 @@ class TranslatorTraining:
         """One class-paired iteration. Rows ``2k`` and ``2k+1`` of the batch hold two inputs of one class
         (``labels``, N class indices; N even); ``y`` are real targets of those classes, not partners of ``x``.
 
-        With A the DiffAugment of :func:`vtgen.core.augment.diff_augment` (identity when ``diffaugment`` is
-        false) and D(·, c) the projection discriminator:
+        With A the DiffAugment of :func:`vtgen.core.augment.diff_augment` with the transforms ``diffaugment``
+        names (:func:`vtgen.core.augment.augment_policy`: true = all, false = identity) and D(·, c) the
+        projection discriminator:
         D minimises ½[L(D(A(y), c), real) + L(D(A(G(x)), c), fake)] + (r1/2)·E‖∇_y D(A(y), c)‖² (R1,
         Mescheder et al. 2018, on the real images; the gradient of the patch logits' sum per image);
         then G minimises L(D(A(G(x)), c), real) + mode_seeking·max(0, 1 − r), with
@@ -180,7 +181,8 @@ class TranslatorTraining:
         ``loss_g_l1`` is |G(x) − y| against the random partner: logged, never trained on.
         """
         cfg = self.settings
-        augment = diff_augment if cfg.get("diffaugment", True) else (lambda images: images)
+        policy = augment_policy(cfg.get("diffaugment", True))
+        augment = (lambda images: diff_augment(images, policy)) if policy else (lambda images: images)
         r1, seeking = cfg.get("r1", 0.0), cfg.get("mode_seeking", 0.0)
         guidance = cfg.get("class_guidance", 0.0)
         labels = labels.to(self.device)
