@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import html
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from conftest import make_project, run, tiny_params
+from conftest import ENV, make_project, run, tiny_params
 
 from vtgen.io.params import ParamsError, validate_params
 from vtgen.studies.study import apply_overrides, choose_capacity, dvc_queue_command, is_default, pareto_front, variant_overrides
@@ -145,7 +147,9 @@ def test_studies_pipeline_end_to_end(tmp_path):
         assert text in page
     assert (project / "reports/studies/figures/pareto.png").stat().st_size > 10_000
 
-    # DVC runs the same study commands (its own dvc.yaml, from the project root)
+    # DVC runs the same study commands (its own dvc.yaml, from the project root; written on request, not committed)
+    subprocess.run([sys.executable, "-m", "vtgen", "workflow", "--studies"], cwd=project, check=True,
+                   env={**ENV, "PYTHONPATH": str(project / "src")}, capture_output=True)
     stages = yaml.safe_load((project / "workflow/studies/dvc.yaml").read_text())["stages"]
     smk = run(["snakemake", "-n", "-p", "--forceall", "studies"], project).stdout
     for stage in stages.values():

@@ -81,7 +81,7 @@ def test_snakemake_and_dvc_run_the_same_commands_and_outputs(snakemake_project, 
     run(["git", "add", "-A"], project)
     run(["git", "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "project"], project)
     run(["dvc", "repro"], project)
-    # the main job is dvc.yaml; workflow/studies/dvc.yaml holds the studies, which `dvc repro` leaves alone
+    # `dvc repro` runs the main job (dvc.yaml) only; the studies' file is not committed (written by --studies)
     assert "up to date" in run(["dvc", "status", "dvc.yaml"], project).stdout.lower()
     assert not (project / "data/studies").exists()
 
@@ -162,6 +162,38 @@ def test_per_class_scope_makes_one_training_job_per_class_and_direction(tmp_path
     names = {stage.name for stage in Repo(str(project)).index.stages}
     assert {n for n in names if n.startswith("train@")} == {
         f"train@{d}-{s}" for d in ("v2t", "t2v") for s in ("all", "denim", "felt")}
+
+
+def test_plain_dvc_status_on_a_fresh_clone_names_the_main_job_only(tmp_path, default_params):
+    """DVC reads every dvc.yaml in the repository, so the studies' pipeline is not committed: plain `dvc status`
+    names the main job's stages only; `vtgen workflow --studies` writes the studies' file for DVC (issue 25)."""
+    import os
+
+    from vtgen.pipeline import stages
+
+    clone = tmp_path / "clone"  # the tracked files of the working tree, as a fresh clone has them
+    listed = subprocess.run(["git", "ls-files", "-z"], cwd=REPO, capture_output=True, text=True, check=True).stdout
+    for name in filter(None, listed.split("\0")):
+        source, target = REPO / name, clone / name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        if source.is_symlink():
+            os.symlink(os.readlink(source), target)
+        elif source.is_file():
+            shutil.copy2(source, target)
+    assert (clone / ".dvc/config").is_file()  # the DVC project is part of what is committed
+    run(["git", "init", "-q"], clone)
+    main = {s.name for s in stages(default_params, "main")}
+    studies = {s.name for s in stages(default_params, "studies")}
+
+    def listed_stages(*target: str) -> set[str]:  # base names of the stages `dvc status` lists
+        status = json.loads(run(["dvc", "status", "--json", *target], clone).stdout or "{}")
+        return {key.rsplit(":", 1)[-1].split("@")[0] for key in status}
+
+    assert listed_stages() == main  # a fresh clone has no outputs: every main stage, and nothing else
+    env = {**ENV, "PYTHONPATH": str(clone / "src")}  # code dependencies are paths inside the clone
+    subprocess.run([sys.executable, "-m", "vtgen", "workflow", "--studies"], cwd=clone, env=env, check=True,
+                   capture_output=True)
+    assert listed_stages("workflow/studies/dvc.yaml") == studies
 
 
 def test_real_vitac_sample_trains_and_generates_from_unaligned_pairs(tmp_path, vitac_root):

@@ -116,13 +116,14 @@ def _studies_report(args, params) -> None:
 def _workflow(args, params) -> None:
     from vtgen.pipeline import DVC_FILES, write_dvc_files
 
-    changed = write_dvc_files(params, Path.cwd(), check=args.check)
+    changed = write_dvc_files(params, Path.cwd(), check=args.check, studies=args.studies)
     if args.check and changed:
-        raise ValueError(f"{', '.join(map(str, changed))} differ from the stage table in src/vtgen/pipeline.py; "
-                         f"run `vtgen workflow` to write them")
+        raise ValueError(f"{', '.join(map(str, changed))}: missing or not what the stage table in src/vtgen/pipeline.py "
+                         f"writes; run `vtgen workflow{' --studies' if args.studies else ''}` to write them")
     verb = "would change" if args.check else "written"
+    following = [str(p) for name, p in DVC_FILES.items() if name == "main" or args.studies or p.is_file()]
     print(f"workflow: {', '.join(map(str, changed)) or 'nothing'} {verb if changed else 'to change'} "
-          f"({', '.join(map(str, DVC_FILES.values()))} follow the stage table)")
+          f"({', '.join(following)} {'follows' if len(following) == 1 else 'follow'} the stage table)")
 
 
 def _experiments(args, params) -> None:
@@ -198,9 +199,14 @@ def build_parser() -> argparse.ArgumentParser:
     studies_report.add_argument("--experiments", required=True, help="folder of `vtgen study --kind experiments` outputs")
     studies_report.add_argument("--frontier", required=True, help="folder written by `vtgen frontier`")
     studies_report.add_argument("--stability", required=True, help="folder written by `vtgen stability`")
-    workflow = sub.add_parser("workflow", help="write dvc.yaml and workflow/studies/dvc.yaml from the stage table")
+    workflow = sub.add_parser("workflow", help="write dvc.yaml (and, with --studies, workflow/studies/dvc.yaml) "
+                              "from the stage table")
     workflow.add_argument("--params", default="params.yaml")
     workflow.add_argument("--check", action="store_true", help="only check that the files match; exit 2 if not")
+    workflow.add_argument("--studies", action="store_true",
+                          help="also write workflow/studies/dvc.yaml, the studies for `dvc repro "
+                          "workflow/studies/dvc.yaml` (not committed: while it exists, plain `dvc status` lists the "
+                          "study stages too; an existing one is always kept current)")
     workflow.set_defaults(func=_workflow)
     experiments = sub.add_parser("experiments", help="print (or queue) the DVC experiments of studies.experiments")
     experiments.add_argument("--params", default="params.yaml")

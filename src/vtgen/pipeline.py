@@ -1,8 +1,9 @@
 """The stage table: every stage of vtgen declared once.
 
 Snakemake builds its rules from :data:`STAGES` in a loop (``Snakefile``) and ``vtgen workflow``
-writes both DVC pipelines (``dvc.yaml`` for the main job, ``workflow/studies/dvc.yaml`` for the
-studies) from it, so the two tools run the same commands on the same inputs and outputs.
+writes the DVC pipelines from it (``dvc.yaml``, the main job, committed; ``workflow/studies/dvc.yaml``,
+the studies, only on request: see :func:`write_dvc_files`), so the two tools run the same commands on
+the same inputs and outputs.
 
 A stage's code dependencies are never listed by hand: :func:`code_files` follows the imports of
 the module that implements it, inside the ``vtgen`` package, so a change to any file the stage
@@ -112,7 +113,8 @@ STAGES: tuple[Stage, ...] = (
           plots={"reports/plots/training.csv": {"x": "step", "y": "loss_g_l1", "title": "generator L1 loss by model"}},
           params=("dataset", "translation"), reads=("src/vtgen/io/templates",),
           doc="The run's report: reports/index.html, summary.md, metrics.json, plots and figures."),
-    # studies: outside the main job (`snakemake studies`, `dvc repro workflow/studies/dvc.yaml`)
+    # studies: outside the main job (`snakemake studies`; for DVC, `vtgen workflow --studies` first, then
+    # `dvc repro workflow/studies/dvc.yaml`)
     Stage("tradeoff_setting", "vtgen.studies.study",
           "vtgen study --params params.yaml --kind tradeoff --name {setting} --pairs data/pairs "
           "--out data/studies/tradeoff/{setting}",
@@ -195,7 +197,9 @@ DVC_HEADER = {
     "main": "# The main job for DVC (`dvc repro`, `dvc exp run`), written by `vtgen workflow` from the stage table\n"
             "# in src/vtgen/pipeline.py: edit the table, not this file. Snakemake builds the same stages.\n",
     "studies": "# vtgen studies for DVC, outside the main job: `dvc repro workflow/studies/dvc.yaml`. Written by\n"
-               "# `vtgen workflow` from the stage table in src/vtgen/pipeline.py: edit the table, not this file.\n",
+               "# `vtgen workflow --studies` from the stage table in src/vtgen/pipeline.py: edit the table, not this\n"
+               "# file. Not committed: while it exists, plain `dvc status` lists the study stages too; delete this\n"
+               "# folder (with its dvc.lock) to leave DVC with the main job alone.\n",
 }
 DVC_FILES = {"main": Path("dvc.yaml"), "studies": Path("workflow/studies/dvc.yaml")}
 # how DVC spells each wildcard's values: a fixed list, or an interpolation that follows params.yaml
@@ -269,11 +273,18 @@ class _PlainDumper(yaml.SafeDumper):
         return True
 
 
-def write_dvc_files(params: dict, root: Path, check: bool = False) -> list[Path]:
-    """Write (or with ``check``, only compare) both DVC files; return those that differ(ed) from the table."""
+def write_dvc_files(params: dict, root: Path, check: bool = False, studies: bool = False) -> list[Path]:
+    """Write (or with ``check``, only compare) the DVC files; return those that differ(ed) from the table.
+
+    ``dvc.yaml`` always; the studies' file only with ``studies`` or when it already exists (kept current, never
+    left stale). It is not committed, because DVC collects every dvc.yaml in the repository: a committed one
+    makes plain ``dvc status`` list every never-run study stage. Nor can it be git-ignored: DVC refuses to
+    run a git-ignored dvc.yaml or dvc.lock."""
     changed = []
     for pipeline, relative in DVC_FILES.items():
         path = root / relative
+        if pipeline != "main" and not studies and not path.is_file():
+            continue
         text = dvc_yaml(params, pipeline, root)
         if not path.is_file() or path.read_text() != text:
             changed.append(relative)
