@@ -13,7 +13,7 @@ from vtgen.stages.train import _draw, objective_settings, PairData, resolve_obje
 SETTINGS = {"size": 32, "ngf": 8, "ndf": 8, "kernel": 4, "discriminator": "patch", "patch_layers": 2,
             "gan_loss": "bce", "l1_weight": 100.0, "optimizer": "adam", "lr": 2e-4, "betas": [0.5, 0.999],
             "batch_size": 4, "iterations": 4, "noise": False}
-CLASS_GAN = {"objective": "class_gan", "r1": 0.1, "diffaugment": True, "mode_seeking": 1.0,
+CLASS_GAN = {"objective": "class_gan", "r1": 0.1, "diffaugment": True, "mode_seeking": 1.0, "mode_seeking_pool": 1,
              "statistics": 0.0, "class_guidance": 0.0, "skips": None, "d_lr_ratio": 1.0}  # the params.yaml default
 
 
@@ -105,6 +105,17 @@ def test_mode_seeking_loss_on_known_inputs():
     assert float(mode_seeking_loss(outputs, targets)) == 0.0
     with pytest.raises(ValueError, match="even"):
         mode_seeking_loss(outputs[:3], targets[:3])
+
+
+def test_pooled_mode_seeking_counts_layout_and_not_pixel_noise():
+    checker = (torch.arange(4)[:, None] + torch.arange(4)[None, :]) % 2 * 2.0 - 1  # a 4 x 4 +-1 checkerboard
+    targets = torch.zeros(2, 1, 4, 4)
+    targets[1, :, :, :2] = 1.0  # two real images: their left halves differ by 1, their 2 x 2 means too
+    noise = torch.stack([checker, -checker])[:, None]  # outputs differing by 2 in every pixel, equal 2 x 2 means
+    assert float(mode_seeking_loss(noise, targets)) == 0.0  # pixel gap 2 > real gap 0.5: no push
+    assert float(mode_seeking_loss(noise, targets, pool=2)) == pytest.approx(1.0)  # means equal: collapse
+    layout = torch.stack([torch.zeros(1, 4, 4), targets[1]])  # the real pair's own difference
+    assert float(mode_seeking_loss(layout, targets, pool=2)) == pytest.approx(0.0)
 
 
 def test_statistics_loss_on_known_inputs():
@@ -232,7 +243,7 @@ def test_auto_picks_the_objective_from_the_pair_kind():
     assert resolve_objective("auto", pair_data(fixed=True))[0] == "pix2pix"
     assert resolve_objective("pix2pix", pair_data(fixed=False)) == ("pix2pix", "as set")
     translation = {"preset": "fast", "class_gan": {"r1": 0.1, "diffaugment": True, "mode_seeking": 1.0,
-                                                   "statistics": 0.0, "class_guidance": 0.0, "skips": "all",
+                                                   "mode_seeking_pool": 1, "statistics": 0.0, "class_guidance": 0.0, "skips": "all",
                                                    "d_lr_ratio": 1.0}}
     assert objective_settings(SETTINGS, translation, "pix2pix") is SETTINGS  # pix2pix: the preset, untouched
     assert objective_settings(SETTINGS, translation, "class_gan") == dict(SETTINGS, **CLASS_GAN)

@@ -57,8 +57,8 @@ class TranslatorTraining:
     ``input_channels`` is the generator's input: the 3 image channels plus those of a
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
-    ``diffaugment``, ``mode_seeking``, ``statistics``, ``class_guidance``, ``skips`` (see :meth:`class_step`) and
-    ``d_lr_ratio`` (D's learning rate over G's), and needs ``num_classes``.
+    ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``statistics``, ``class_guidance``, ``skips``
+    (see :meth:`class_step`) and ``d_lr_ratio`` (D's learning rate over G's), and needs ``num_classes``.
     """
 
     def __init__(self, settings: dict, device: torch.device | str = "cpu", precision: str = "fp32",
@@ -170,7 +170,8 @@ class TranslatorTraining:
         Mescheder et al. 2018, on the real images; the gradient of the patch logits' sum per image);
         then G minimises L(D(A(G(x)), c), real) + mode_seeking·max(0, 1 − r), with
         r = mean|G(x₂ₖ) − G(x₂ₖ₊₁)| / mean|y₂ₖ − y₂ₖ₊₁| (:func:`mode_seeking_loss`: Mao et al. 2019, eq. 3,
-        with the second input of the class in place of a second noise draw, clipped as in DSGAN).
+        with the second input of the class in place of a second noise draw, clipped as in DSGAN), the gaps
+        taken between ``mode_seeking_pool`` x ``mode_seeking_pool`` means (1: pixels).
         With ``statistics`` w > 0, G += w·:func:`statistics_loss` (G(x), y): colour, contrast and power spectrum
         of each output against those of the real image of its class in its row (summary statistics only, so
         their pull towards the class's typical values cannot copy or average the images themselves).
@@ -205,7 +206,8 @@ class TranslatorTraining:
             with self._autocast():
                 d_fake, class_fake = self.discriminator.judge(augment(fake), labels)
             loss_g_gan = self._loss(d_fake, True)
-            loss_g = loss_g_gan + seeking * mode_seeking_loss(fake.float(), y) if seeking else loss_g_gan
+            pool = cfg.get("mode_seeking_pool", 1)
+            loss_g = loss_g_gan + seeking * mode_seeking_loss(fake.float(), y, pool) if seeking else loss_g_gan
             if guidance:
                 loss_g = loss_g + guidance * F.cross_entropy(class_fake.float(), labels)
             statistics = cfg.get("statistics", 0.0)
@@ -257,18 +259,22 @@ def statistics_loss(outputs: torch.Tensor, targets: torch.Tensor) -> torch.Tenso
     return mean + spread + spectrum
 
 
-def mode_seeking_loss(outputs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+def mode_seeking_loss(outputs: torch.Tensor, targets: torch.Tensor, pool: int = 1) -> torch.Tensor:
     """max(0, 1 − r), r = mean|o₂ₖ − o₂ₖ₊₁| / mean|t₂ₖ − t₂ₖ₊₁| over the row pairs (2k, 2k+1) of the batch,
     where the two rows of a pair are of one class and ``targets`` are real images of those classes.
 
     Zero once two outputs of a class differ as much as two real images of it do: the mode-seeking ratio of
     Mao et al. 2019 (eq. 3), clipped as in Yang et al. 2019 (DSGAN), with the real spread of the class as
     its scale so that a low-contrast target modality (touch) is not pushed to more contrast than it has
-    (an unclipped 1/r, tried first, tripled the output contrast of V2T). ``targets`` is detached (data); N
-    must be even and at least 2."""
+    (an unclipped 1/r, tried first, tripled the output contrast of V2T). With ``pool`` p > 1 both gaps are
+    taken between p x p means (``avg_pool2d``), so that varied layout counts and pixel noise, which two
+    outputs can differ by at no cost in realism, does not. ``targets`` is detached (data); N must be even
+    and at least 2."""
     n = outputs.shape[0]
     if n < 2 or n % 2:
         raise ValueError(f"mode seeking pairs rows (2k, 2k+1): the batch needs an even size >= 2, got {n}")
+    if pool > 1:
+        outputs, targets = F.avg_pool2d(outputs, pool), F.avg_pool2d(targets.detach().float(), pool)
     out_gap = (outputs[0::2] - outputs[1::2]).abs().mean()
     real_gap = (targets[0::2] - targets[1::2]).abs().mean().detach().float()
     return torch.relu(1.0 - out_gap / real_gap.clamp_min(MODE_SEEKING_EPS))
