@@ -193,7 +193,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--iterations", type=int, default=1500)
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--sheets", type=Path, help="folder for one PNG per variant and seed: per class, test inputs, "
+    parser.add_argument("--sheets", type=Path, help="folder for one PNG per run, variant and seed: per class, test inputs, "
                                                    "their translations and real test targets")
     args = parser.parse_args()
     root = Path(args.run).resolve()
@@ -216,7 +216,8 @@ def main() -> None:
             lines.append(row(f"{name} ({result['objective']})", seed, result))
             if args.sheets:
                 args.sheets.mkdir(parents=True, exist_ok=True)
-                write_sheet(args.sheets / f"{args.direction}_{name}_{seed}.png", result["generated"], context)
+                sheet = args.sheets / f"{root.name}_{args.direction}_{name}_{seed}.png"  # the run's name: one folder, many runs
+                write_sheet(sheet, result["generated"], context)
             print(lines[-1], flush=True)
     print("\n" + header + "\n" + "\n".join(lines))
 
