@@ -13,8 +13,7 @@ from vtgen.stages.train import _draw, objective_settings, PairData, resolve_obje
 SETTINGS = {"size": 32, "ngf": 8, "ndf": 8, "kernel": 4, "discriminator": "patch", "patch_layers": 2,
             "gan_loss": "bce", "l1_weight": 100.0, "optimizer": "adam", "lr": 2e-4, "betas": [0.5, 0.999],
             "batch_size": 4, "iterations": 4, "noise": False}
-CLASS_GAN = {"objective": "class_gan", "r1": 0.1, "diffaugment": ["translation", "cutout"], "mode_seeking": 1.0,
-             "mode_seeking_pool": 4,
+CLASS_GAN = {"objective": "class_gan", "r1": 0.1, "diffaugment": True, "mode_seeking": 1.0, "mode_seeking_pool": 1,
              "statistics": 0.0, "class_guidance": 0.0, "skips": None, "d_lr_ratio": 1.0}  # the params.yaml default
 
 
@@ -243,8 +242,8 @@ def test_auto_picks_the_objective_from_the_pair_kind():
     assert resolve_objective("auto", pair_data(fixed=False))[0] == "class_gan"
     assert resolve_objective("auto", pair_data(fixed=True))[0] == "pix2pix"
     assert resolve_objective("pix2pix", pair_data(fixed=False)) == ("pix2pix", "as set")
-    translation = {"preset": "fast", "class_gan": {"r1": 0.1, "diffaugment": ["translation", "cutout"],
-                                                   "mode_seeking": 1.0, "mode_seeking_pool": 4, "statistics": 0.0, "class_guidance": 0.0, "skips": "all",
+    translation = {"preset": "fast", "class_gan": {"r1": 0.1, "diffaugment": True, "mode_seeking": 1.0,
+                                                   "mode_seeking_pool": 1, "statistics": 0.0, "class_guidance": 0.0, "skips": "all",
                                                    "d_lr_ratio": 1.0}}
     assert objective_settings(SETTINGS, translation, "pix2pix") is SETTINGS  # pix2pix: the preset, untouched
     assert objective_settings(SETTINGS, translation, "class_gan") == dict(SETTINGS, **CLASS_GAN)
@@ -321,8 +320,7 @@ def test_class_pairs_do_not_collapse_to_one_image_per_class():
     train, test = rendered_class_pairs(12, 32, seed=0), rendered_class_pairs(8, 32, seed=1)
     settings = objective_settings(dict(SETTINGS, patch_layers=2, iterations=300),
                                   {"preset": "t", "class_gan": {k: CLASS_GAN[k] for k in ("r1", "diffaugment",
-                                                                                           "mode_seeking",
-                                                                                           "mode_seeking_pool")}},
+                                                                                           "mode_seeking")}},
                                   resolve_objective("auto", train)[0])
     assert settings["objective"] == "class_gan"
     run = dict(device="cpu", precision="fp32", threads=1, checkpoint_every=10**6, resume=False, log_every=50, seed=0)
