@@ -54,7 +54,8 @@ def cutout(x: torch.Tensor, fraction: float = CUTOUT_FRACTION) -> torch.Tensor:
     return x * (~inside)[:, None].to(x.dtype)
 
 
-POLICY = ("colour", "translation", "cutout")  # the order transforms apply in (Zhao et al. 2020's default policy)
+TRANSFORMS = {"colour": colour, "translation": translation, "cutout": cutout}  # in the order they apply
+POLICY = tuple(TRANSFORMS)  # every transform: Zhao et al. 2020's "color,translation,cutout" policy
 
 
 def augment_policy(setting: bool | list[str]) -> tuple[str, ...]:
@@ -72,8 +73,7 @@ def diff_augment(x: torch.Tensor, policy: tuple[str, ...] = POLICY) -> torch.Ten
     """The transforms of ``policy`` in :data:`POLICY` order (the default: colour, then translation, then cutout,
     the "color,translation,cutout" policy of Zhao et al. 2020), each drawn independently per image. Shape and
     dtype are kept; gradients flow to ``x``."""
-    transforms = {"colour": colour, "translation": translation, "cutout": cutout}
-    for name in POLICY:
+    for name, transform in TRANSFORMS.items():
         if name in policy:
-            x = transforms[name](x)
+            x = transform(x)
     return x

@@ -183,7 +183,7 @@ class TranslatorTraining:
         """
         cfg = self.settings
         policy = augment_policy(cfg.get("diffaugment", True))
-        augment = (lambda images: diff_augment(images, policy)) if policy else (lambda images: images)
+        augment = lambda images: diff_augment(images, policy)  # noqa: E731 (an empty policy is the identity)
         r1, seeking = cfg.get("r1", 0.0), cfg.get("mode_seeking", 0.0)
         guidance = cfg.get("class_guidance", 0.0)
         labels = labels.to(self.device)
