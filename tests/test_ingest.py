@@ -314,7 +314,9 @@ def test_ingest_memory_grows_with_metadata_not_with_pixels(tmp_path):
 
 from pathlib import Path
 
-from vtgen.stages.ingest import _decode_fast, compile_layout, near_duplicate_pairs
+from vtgen.core.grouping import near_duplicate_pairs
+from vtgen.io.decoding import _decode_fast
+from vtgen.io.layouts import compile_layout
 from vtgen.stages.pairs import assign_splits
 
 VT60 = Path(__file__).resolve().parents[2] / "shared" / "data" / "vt60_subset"
@@ -599,7 +601,7 @@ def test_grey_thumbnail_equals_the_cv2_area_resize():
     """The integer-shrink shortcut (cell sums by cv2.reduce) gives OpenCV's INTER_AREA thumbnail exactly."""
     import cv2
 
-    from vtgen.stages.ingest import grey_thumbnail, THUMB
+    from vtgen.core.grouping import grey_thumbnail, THUMB
 
     rng = np.random.default_rng(0)
     for shape in [(480, 640), (640, 480), (480, 480), (240, 320), (256, 256), (48, 48), (32, 32), (300, 300), (1024, 768)]:
