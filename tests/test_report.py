@@ -15,7 +15,8 @@ import pytest
 
 from conftest import REPO, tiny_params, write_image
 from vtgen.io.report_pages import PAPER, PAPER_FILE, load_paper, render_page
-from vtgen.stages.report import accuracy_table, run_report, ssim_tables
+from vtgen.io.report_tables import accuracy_table, ssim_tables
+from vtgen.stages.report import run_report
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 SCREENSHOT = REPO / "logs" / "test-artifacts" / "report.png"

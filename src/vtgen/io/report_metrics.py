@@ -1,0 +1,127 @@
+"""metrics.json: the run's headline numbers for ``dvc metrics``, plain numbers only.
+
+SSIM levels and distribution metrics per direction (generated, real held-out, the best trivial
+baseline), accuracy per classify modality, and counts; no timings, dates, versions or paths, so
+identical inputs give identical numbers.
+"""
+
+from __future__ import annotations
+
+import pandas as pd
+
+from vtgen.core.domain import DIRECTIONS
+from vtgen.io.report_tables import DISTRIBUTION_BASELINES, has_value
+
+REFERENCE_LEVELS = {"real_train": "real_vs_real", "nearest_neighbour": "nearest_neighbour",
+                    "mean_image": "mean_image", "flat_mean_colour": "flat_mean_colour"}
+# True when lower is better
+LOWER_IS_BETTER = {"kid": True, "fid": True, "spectrum": True, "precision": False, "recall": False,
+                   "density": False, "coverage": False}
+# metrics.json: (metric, view) per direction, each with generated, real_heldout and best_baseline
+HEADLINE_DISTRIBUTION = [("kid", "classifier"), ("fid", "classifier"), ("two_sample", "classifier"),
+                         ("spectrum", "pixels")]
+
+
+def _number(value) -> float | None:
+    """A finite value rounded to 6 decimals, or None."""
+    return None if value is None or pd.isna(value) else round(float(value), 6)
+
+
+def _compact(values: dict) -> dict:
+    return {k: v for k, v in values.items() if v is not None and v != {}}
+
+
+
+def ssim_headline(by_class: pd.DataFrame, direction: str) -> dict:
+    """Colour-SSIM of the pooled model (scope 'all') and the reference levels over all classes; per-class
+    models under ``scopes``; ``test_images`` counts the generated test images scored."""
+    overall = by_class[(by_class["direction"] == direction) & (by_class["class"] == "(all)")]
+    result: dict = {"scopes": {}}
+    for row in overall.itertuples(index=False):
+        if row.candidate == "generated":
+            values = _compact({"set_colour_ssim": _number(row.set_colour_ssim),
+                               "aligned_colour_ssim": _number(row.colour_ssim),
+                               "nearest_real_colour_ssim": _number(row.nearest_real_colour_ssim),
+                               "test_images": int(row.images)})
+            (result if row.scope == "all" else result["scopes"].setdefault(row.scope, {})).update(values)
+        elif row.candidate in REFERENCE_LEVELS:
+            name = REFERENCE_LEVELS[row.candidate]
+            result[name] = _number(row.set_colour_ssim)
+            result[f"{name}_aligned"] = _number(row.colour_ssim)
+    return _compact(result)
+
+
+def best_baseline(metric: str, values: dict[str, float]) -> tuple[str, float] | None:
+    """The best of the trivial baselines ``values`` for ``metric`` (two-sample accuracy: closest to 0.5)."""
+    finite = {name: value for name, value in values.items() if has_value(value)}
+    if not finite:
+        return None
+    if metric == "two_sample":
+        return min(finite.items(), key=lambda item: abs(item[1] - 0.5))
+    if LOWER_IS_BETTER.get(metric, True):
+        return min(finite.items(), key=lambda item: item[1])
+    return max(finite.items(), key=lambda item: item[1])
+
+
+def distribution_headline(distribution: pd.DataFrame, memorisation: pd.DataFrame, direction: str) -> dict:
+    """Per HEADLINE_DISTRIBUTION metric over all classes: generated (pooled model), real held-out and the
+    best trivial baseline; and the memorisation rate (classifier features) of generated and real held-out."""
+    rows = distribution[(distribution["direction"] == direction) & (distribution["class"] == "(all)")]
+    result = {}
+    for metric, view in HEADLINE_DISTRIBUTION:
+        part = rows[(rows["metric"] == metric) & (rows["view"] == view)]
+        values = {(c, s): v for c, s, v in zip(part["candidate"], part["scope"], part["value"])}
+        generated = values.get(("generated", "all"),
+                               next((v for (c, _), v in sorted(values.items()) if c == "generated"), None))
+        best = best_baseline(metric, {c: values[(c, "-")] for c in DISTRIBUTION_BASELINES if (c, "-") in values})
+        result[f"{metric}_{view}"] = _compact({"generated": _number(generated),
+                                               "real_heldout": _number(values.get(("real_heldout", "-"))),
+                                               "best_baseline": _number(best[1]) if best else None})
+    mem = memorisation[(memorisation["direction"] == direction) & (memorisation["class"] == "(all)")
+                       & (memorisation["view"] == "classifier")].set_index("candidate")["rate"]
+    result["memorisation_classifier"] = _compact({c: _number(mem.get(c)) for c in ("generated", "real_heldout")})
+    return _compact(result)
+
+
+def classify_headline(entry: dict) -> dict:
+    """Mean final-epoch test accuracy over seeds per setting, the GAN-test, the GAN-test as a share of the
+    real-only test accuracy (``gan_test_vs_real``: how recognisable generated images are against real
+    ones), the test-set size, the accuracy gained from generated images per comparison
+    (``gain_from_generated``) and the policy's (``policy``: the chosen setting's test accuracy beside
+    real only's, their difference and 1 where it adds generated images, 0 where not)."""
+    table, summary = entry["accuracy"], entry["summary"]
+    if summary.get("status", "ok") != "ok" or table.empty:
+        return {}
+    last = table[table["epoch"] == table.groupby(["setting", "seed"])["epoch"].transform("max")]
+    result = {s: _number(g["test_accuracy"].mean()) for s, g in last.groupby("setting")}
+    gan = last.loc[(last["setting"] == "real"), "gan_test_accuracy"].dropna()
+    result["gan_test"] = _number(gan.mean()) if len(gan) else None
+    if result["gan_test"] is not None and result.get("real"):
+        result["gan_test_vs_real"] = _number(result["gan_test"] / result["real"])
+    result["seeds"] = int(last["seed"].nunique())
+    result["real_test_images"] = (summary.get("counts") or {}).get("real_test")
+    result["gain_from_generated"] = _compact({c["setting"]: _number(c["difference"])
+                                              for c in summary.get("comparisons") or []})
+    test = (summary.get("policy") or {}).get("test") or {}
+    if test.get("accuracy") is not None:
+        result["policy"] = _compact({"accuracy": _number(test["accuracy"]), "real_only": _number(test["real_accuracy"]),
+                                     "gain": _number(test.get("gain")),
+                                     "uses_generated": int(test["setting"] != "real")})
+    return _compact(result)
+
+
+def headline_metrics(data: dict) -> dict:
+    """The numbers for ``dvc metrics``: SSIM levels and distribution metrics per direction, accuracy per
+    modality and counts; no timings, dates, versions or paths."""
+    goals = data["score_summary"].get("goals") or {}  # issue 24's numbers, each with its interval and n
+    metrics = {d: _compact(ssim_headline(data["by_class"], d)
+                           | distribution_headline(data["distribution"], data["memorisation"], d)
+                           | {"goals": goals.get(d) or {}})
+               for d in DIRECTIONS}
+    metrics = _compact(metrics)
+    metrics["classify"] = _compact({m: classify_headline(e) for m, e in data["classify"].items()})
+    ingest = data["ingest"]
+    metrics["counts"] = _compact({"classes": len(ingest.get("classes", [])), "images_kept": ingest.get("kept"),
+                                  "quarantined": ingest.get("quarantined"),
+                                  "models": sum(1 for r in data["models"] if str(r.get("status", "ok")) == "ok")})
+    return metrics
