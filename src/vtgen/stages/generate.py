@@ -8,6 +8,7 @@ aligned view, its ground truth. ``translate_files`` serves any image or folder a
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import shutil
@@ -293,14 +294,8 @@ def translate_files(model: str | Path, inputs: list[str | Path], out_dir: str | 
     shows a progress bar on stderr. A model conditioned on the class needs ``class_name`` (one of the
     classes it was trained on), which every input is asked to be.
     """
-    generator, meta = load_translator(model, device)
-    if direction and direction != meta["direction"]:
-        raise ValueError(f"{meta['path']}: model translates {meta['direction']}, not {direction}")
+    generator, meta, label = _open_translator(model, device, direction, class_name)
     conditioning = meta["conditioning"]
-    if conditioning.kind != "none" and class_name is None:
-        raise ValueError(f"{meta['path']}: this model is conditioned on the class ({conditioning.kind}); name the "
-                         f"class of the inputs with --class (one of {', '.join(conditioning.classes)})")
-    label = conditioning.labels([class_name])[0] if conditioning.kind != "none" else None
     out_dir = Path(out_dir)
     found = collect_inputs(inputs, out_dir)
     problems = _output_collisions(found, out_dir)
@@ -314,15 +309,6 @@ def translate_files(model: str | Path, inputs: list[str | Path], out_dir: str | 
     pending: list[tuple[Path, np.ndarray]] = []
     written: list[Path] = []
     frames = 0
-
-    def prepare(item: tuple[Path, Path]):
-        path, stem = item
-        try:
-            image, note = _read_user_image(path)
-            tiles, extra = prepare_input(image, meta, as_tiles)
-        except (ValueError, cv2.error) as exc:  # ImageError is a ValueError
-            return path, stem, None, str(exc)
-        return path, stem, tiles, "; ".join(n for n in [note, *extra] if n)
 
     def flush() -> None:
         if pending and not problems:
@@ -338,6 +324,7 @@ def translate_files(model: str | Path, inputs: list[str | Path], out_dir: str | 
     opencv_threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # two reader threads are the parallelism; OpenCV's own pool on top only adds contention
     try:
+        prepare = functools.partial(_prepare_user_file, meta=meta, as_tiles=as_tiles)
         for path, stem, tiles, text in stream_map(prepare, found, workers=2, total=len(found), desc="translate",
                                                   progress=show):
             if tiles is None:
@@ -345,8 +332,7 @@ def translate_files(model: str | Path, inputs: list[str | Path], out_dir: str | 
                 continue
             if text:
                 notes.setdefault(text, []).append(path)
-            names = ([stem.with_name(f"{stem.name}.png")] if len(tiles) == 1
-                     else [stem.with_name(f"{stem.name}_{k}.png") for k in range(len(tiles))])
+            names = _output_names(stem, len(tiles))
             clashes = [name for name in names if name in owner and owner[name] != path]
             if clashes and path not in collided:
                 problems.append((path, f"its output {out_dir / clashes[0]} would overwrite that of {owner[clashes[0]]}"))
@@ -358,22 +344,65 @@ def translate_files(model: str | Path, inputs: list[str | Path], out_dir: str | 
         if problems:
             raise _refusal(problems, len(found))
         flush()
-        out_dir.mkdir(parents=True, exist_ok=True)
-        for name in written:
-            (out_dir / name).parent.mkdir(parents=True, exist_ok=True)
-            os.replace(staging / name, out_dir / name)
+        _move_outputs(staging, out_dir, written)
     finally:
         cv2.setNumThreads(opencv_threads)
         shutil.rmtree(staging, ignore_errors=True)
+    _print_summary(meta, notes, frames, len(written), out_dir, as_tiles)
+    return [out_dir / name for name in written]
+
+
+def _open_translator(model: str | Path, device: str, direction: str | None, class_name: str | None):
+    """(generator, model facts, the class label every input is asked to be or None) of the model file;
+    ValueError naming the file when it translates another ``direction`` or needs a ``class_name``."""
+    generator, meta = load_translator(model, device)
+    if direction and direction != meta["direction"]:
+        raise ValueError(f"{meta['path']}: model translates {meta['direction']}, not {direction}")
+    conditioning = meta["conditioning"]
+    if conditioning.kind != "none" and class_name is None:
+        raise ValueError(f"{meta['path']}: this model is conditioned on the class ({conditioning.kind}); name the "
+                         f"class of the inputs with --class (one of {', '.join(conditioning.classes)})")
+    label = conditioning.labels([class_name])[0] if conditioning.kind != "none" else None
+    return generator, meta, label
+
+
+def _prepare_user_file(item: tuple[Path, Path], meta: dict, as_tiles: bool):
+    """(path, stem, the model-ready tiles or None, its notes joined or the reason it cannot be used) of one
+    input file (:func:`prepare_input`)."""
+    path, stem = item
+    try:
+        image, note = _read_user_image(path)
+        tiles, extra = prepare_input(image, meta, as_tiles)
+    except (ValueError, cv2.error) as exc:  # ImageError is a ValueError
+        return path, stem, None, str(exc)
+    return path, stem, tiles, "; ".join(n for n in [note, *extra] if n)
+
+
+def _move_outputs(staging: Path, out_dir: Path, written: list[Path]) -> None:
+    """Move every staged output (relative name in ``written``) to the same name under ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for name in written:
+        (out_dir / name).parent.mkdir(parents=True, exist_ok=True)
+        os.replace(staging / name, out_dir / name)
+
+
+def _output_names(stem: Path, tiles: int) -> list[Path]:
+    """The output file names (relative) of an input giving ``tiles`` tiles: ``<stem>.png`` or ``<stem>_<k>.png``."""
+    return ([stem.with_name(f"{stem.name}.png")] if tiles == 1
+            else [stem.with_name(f"{stem.name}_{k}.png") for k in range(tiles)])
+
+
+def _print_summary(meta: dict, notes: dict[str, list[Path]], frames: int, tiles: int, out_dir: Path,
+                   as_tiles: bool) -> None:
+    """The conversion notes (one line per note, naming its first input) and what was translated how."""
     for text, paths in sorted(notes.items()):
         print(f"translate: note: {len(paths)} input{'s' if len(paths) > 1 else ''} ({display_path(paths[0])}"
               f"{', ...' if len(paths) > 1 else ''}): {text}")
     prep = meta["preparation"]
     how = ("as tiles, resized to the model size" if as_tiles else
            f"{prep['input_modality']} ROI rule: {_describe_roi(prep['roi'])}" if prep else "as tiles of the model size")
-    print(f"translate ({meta['direction']}): {frames} images -> {len(written)} tiles of {meta['size']} px "
+    print(f"translate ({meta['direction']}): {frames} images -> {tiles} tiles of {meta['size']} px "
           f"({how}) -> {out_dir}")
-    return [out_dir / name for name in written]
 
 
 def _describe_roi(roi: dict) -> str:
