@@ -478,6 +478,68 @@ def _fit_circle(points: np.ndarray) -> tuple[float, float, float]:
     return float(cx), float(cy), float(np.sqrt(max(c + cx * cx + cy * cy, 0.0)))
 
 
+def _surround_deviation(small: np.ndarray) -> np.ndarray:
+    """Steps 1-2 of :func:`find_disc`: each pixel's 5 x 5 box mean of its absolute difference from the
+    surround level (the median of the most common 24-level band of the 2 px border strip), uint8."""
+    border = np.concatenate([small[:2].ravel(), small[-2:].ravel(), small[2:-2, :2].ravel(), small[2:-2, -2:].ravel()])
+    bands = border >> 3
+    mode = int(np.argmax(np.bincount(bands, minlength=32)))
+    surround = float(np.median(border[np.abs(bands.astype(int) - mode) <= 1]))
+    return cv2.boxFilter(cv2.absdiff(small, np.full_like(small, round(surround))), -1, (5, 5))
+
+
+def _disc_region(deviation: np.ndarray, flat_level: float) -> tuple[tuple, np.ndarray]:
+    """Step 3 of :func:`find_disc`: (the outer contours of the region above Otsu's level (at least
+    ``flat_level``), components under 5 % of the largest dropped; the convex hull of them all)."""
+    level, _ = cv2.threshold(deviation, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+    region = cv2.compare(deviation, max(level, flat_level), cv2.CMP_GT)
+    count, labels = cv2.connectedComponents(region, connectivity=8)  # areas by bincount: faster than WithStats
+    areas = np.bincount(labels.ravel(), minlength=count)[1:]
+    kept = (areas >= 0.05 * areas.max()).view(np.uint8)
+    if not kept.all():  # else every component is kept: the region as it is (findContours reads non-zero)
+        region = np.concatenate([[0], kept]).astype(np.uint8)[labels]
+    contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    outline = np.concatenate(contours)[:, 0]
+    return contours, cv2.convexHull(outline)
+
+
+def _fit_rim(vertices: np.ndarray) -> tuple[float, float, float]:
+    """Step 4 of :func:`find_disc`: a circle fitted to the rim ``vertices`` (N x 2, N >= 5), refitted
+    on the vertices on or just outside it until the kept set settles (at most five fits)."""
+    keep = np.ones(len(vertices), bool)
+    for _ in range(5):
+        cx, cy, r = _fit_circle(vertices[keep])
+        signed = np.hypot(vertices[:, 0] - cx, vertices[:, 1] - cy) - r
+        tol = max(1.0, 0.02 * r)
+        new = (signed >= -tol) & (signed <= max(tol, 2.5 * float(np.median(np.abs(signed[keep])))))
+        if new.sum() < 5 or np.array_equal(new, keep):
+            break
+        keep = new
+    return cx, cy, r
+
+
+def _rim_support(contours: tuple, cx: float, cy: float, r: float, shape: tuple[int, int]) -> float:
+    """The fraction of the circle's in-frame rim (frame ``shape`` (h, w)) within 1.5 px of the region's
+    outline ``contours``; 0 when none of the rim lies in the frame."""
+    h, w = shape
+    edge = np.zeros((h, w), np.uint8)
+    cv2.drawContours(edge, contours, -1, 1, 1)
+    edge = cv2.dilate(edge, np.ones((3, 3), np.uint8))
+    angles = np.linspace(0, 2 * np.pi, max(64, int(2 * np.pi * r)), endpoint=False)
+    rx, ry = np.rint(cx + r * np.cos(angles)).astype(int), np.rint(cy + r * np.sin(angles)).astype(int)
+    inside = (rx > 0) & (ry > 0) & (rx < w - 1) & (ry < h - 1)
+    return float(edge[ry[inside], rx[inside]].mean()) if inside.any() else 0.0
+
+
+def _circle_hull_overlap(hull: np.ndarray, cx: float, cy: float, r: float, shape: tuple[int, int]) -> float:
+    """Intersection over union of the circle and the convex ``hull``, both within the frame ``shape`` (h, w)."""
+    hull_mask = np.zeros(shape, np.uint8)
+    cv2.fillConvexPoly(hull_mask, hull, 1)
+    circle = np.zeros(shape, np.uint8)
+    cv2.circle(circle, (round(cx * 16), round(cy * 16)), max(1, round(r * 16)), 1, -1, shift=4)
+    return float(cv2.countNonZero(circle & hull_mask) / max(1, cv2.countNonZero(circle | hull_mask)))
+
+
 def find_disc(frame: np.ndarray, flat_level: float = 8.0, min_support: float = 0.6, min_overlap: float = 0.85,
               min_radius: float = 0.15) -> Disc:
     """The round sensing area of a round optical tactile frame (a disc against a flat surround).
@@ -518,49 +580,17 @@ def find_disc(frame: np.ndarray, flat_level: float = 8.0, min_support: float = 0
 
     if min(w, h) < 8:
         return none(f"frame {width}x{height} too small to find a disc")
-    border = np.concatenate([small[:2].ravel(), small[-2:].ravel(), small[2:-2, :2].ravel(), small[2:-2, -2:].ravel()])
-    bands = border >> 3
-    mode = int(np.argmax(np.bincount(bands, minlength=32)))
-    surround = float(np.median(border[np.abs(bands.astype(int) - mode) <= 1]))
-    deviation = cv2.boxFilter(cv2.absdiff(small, np.full_like(small, round(surround))), -1, (5, 5))
+    deviation = _surround_deviation(small)
     if deviation.max() <= flat_level:
         return none("flat frame: nothing departs from the surround")
-    level, _ = cv2.threshold(deviation, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
-    region = cv2.compare(deviation, max(level, flat_level), cv2.CMP_GT)
-    count, labels = cv2.connectedComponents(region, connectivity=8)  # areas by bincount: faster than WithStats
-    areas = np.bincount(labels.ravel(), minlength=count)[1:]
-    kept = (areas >= 0.05 * areas.max()).view(np.uint8)
-    if not kept.all():  # else every component is kept: the region as it is (findContours reads non-zero)
-        region = np.concatenate([[0], kept]).astype(np.uint8)[labels]
-    contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    outline = np.concatenate(contours)[:, 0]
-    hull = cv2.convexHull(outline)
+    contours, hull = _disc_region(deviation, flat_level)
     vertices = hull[:, 0].astype(np.float64)
     vertices = vertices[(vertices[:, 0] > 0) & (vertices[:, 1] > 0) & (vertices[:, 0] < w - 1) & (vertices[:, 1] < h - 1)]
     if len(vertices) < 5:
         return none("no rim: the region touches the frame border almost everywhere")
-    keep = np.ones(len(vertices), bool)
-    for _ in range(5):
-        cx, cy, r = _fit_circle(vertices[keep])
-        signed = np.hypot(vertices[:, 0] - cx, vertices[:, 1] - cy) - r
-        tol = max(1.0, 0.02 * r)
-        new = (signed >= -tol) & (signed <= max(tol, 2.5 * float(np.median(np.abs(signed[keep])))))
-        if new.sum() < 5 or np.array_equal(new, keep):
-            break
-        keep = new
-    # support: how much of the circle's in-frame rim lies on the region's outline
-    edge = np.zeros((h, w), np.uint8)
-    cv2.drawContours(edge, contours, -1, 1, 1)
-    edge = cv2.dilate(edge, np.ones((3, 3), np.uint8))
-    angles = np.linspace(0, 2 * np.pi, max(64, int(2 * np.pi * r)), endpoint=False)
-    rx, ry = np.rint(cx + r * np.cos(angles)).astype(int), np.rint(cy + r * np.sin(angles)).astype(int)
-    inside = (rx > 0) & (ry > 0) & (rx < w - 1) & (ry < h - 1)
-    support = float(edge[ry[inside], rx[inside]].mean()) if inside.any() else 0.0
-    hull_mask = np.zeros((h, w), np.uint8)
-    cv2.fillConvexPoly(hull_mask, hull, 1)
-    circle = np.zeros((h, w), np.uint8)
-    cv2.circle(circle, (round(cx * 16), round(cy * 16)), max(1, round(r * 16)), 1, -1, shift=4)
-    overlap = float(cv2.countNonZero(circle & hull_mask) / max(1, cv2.countNonZero(circle | hull_mask)))
+    cx, cy, r = _fit_rim(vertices)
+    support = _rim_support(contours, cx, cy, r, (h, w))
+    overlap = _circle_hull_overlap(hull, cx, cy, r, (h, w))
     fit = ((cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5, r * (sx + sy) / 2, support, overlap)
     if not (0 <= fit[0] <= width - 1 and 0 <= fit[1] <= height - 1):
         return none("the fitted circle's centre lies outside the frame", *fit)
