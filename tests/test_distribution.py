@@ -526,6 +526,39 @@ def test_fid_from_grams_equals_fid_and_the_bootstrap_interval_brackets_it():
         dist.fid_interval(x, y, resamples=1)
 
 
+def test_fid_of_a_draw_with_repeated_rows_equals_fid_of_its_counts():
+    """A bootstrap draw is scored on its distinct rows with their counts: the same FID as the rows repeated."""
+    rng = np.random.default_rng(12)
+    x, y = rng.normal(size=(25, 30)), rng.normal(0.2, 1.1, size=(20, 30))
+    i, j = rng.integers(0, 25, 25), rng.integers(0, 20, 20)
+    w_x, w_y = np.bincount(i, minlength=25).astype(float), np.bincount(j, minlength=20).astype(float)
+    keep_x, keep_y = np.flatnonzero(w_x), np.flatnonzero(w_y)
+    xd, yd = x[keep_x], y[keep_y]
+    weighted = dist._fid_from_grams(xd @ xd.T, yd @ yd.T, xd @ yd.T, w_x[keep_x], w_y[keep_y])
+    assert weighted == pytest.approx(dist.fid(x[i], y[j]), rel=1e-10)
+    assert len(keep_x) < 25  # the draw did repeat rows, so the counts mattered
+
+
+def test_standardised_ridge_predicts_as_scikit_learns_pipeline():
+    from sklearn.linear_model import RidgeClassifier
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    rng = np.random.default_rng(13)
+    disagreements = 0
+    for n, features in ((12, 3), (40, 12), (60, 200), (150, 40)):  # both the primal and the dual form
+        x = rng.normal(size=(n, features)) * rng.uniform(0.01, 100, features)
+        x[:, 0] = 7.0  # a constant feature keeps scale 1
+        labels = np.arange(n) % 2
+        x[labels == 1] += 0.3
+        test = rng.normal(size=(80, features)) * x.std(axis=0) + x.mean(axis=0)
+        theirs = make_pipeline(StandardScaler(), RidgeClassifier(alpha=1.0)).fit(x, labels).predict(test)
+        ours = dist.standardised_ridge_predict(x, labels, test)
+        disagreements += int((ours != theirs).sum())
+        assert set(np.unique(ours)) <= {0, 1}
+    assert disagreements == 0
+
+
 def test_pairwise_distances_are_exact_for_images_and_features():
     images = textures(7, size=16)
     fast = dist.pairwise_distances(images, images[:4])
