@@ -518,6 +518,9 @@ def test_fid_from_grams_equals_fid_and_the_bootstrap_interval_brackets_it():
     assert low < dist.fid(x, y) < high
     assert dist.fid_interval(x, y, resamples=200, seed=0) == (low, high)  # seeded
     assert all(math.isnan(v) for v in dist.fid_interval(x, y, resamples=0))
+    value, *interval = dist.fid_and_interval(x, y, resamples=200, seed=0)
+    assert value == pytest.approx(dist.fid(x, y), rel=1e-9) and tuple(interval) == (low, high)
+    assert dist.fid_and_interval(x, y, resamples=0)[0] == value
     # more images, narrower interval
     big_x, big_y = rng.normal(size=(400, 12)), rng.normal(0.3, 1.2, size=(300, 12))
     big_low, big_high = dist.fid_interval(big_x, big_y, resamples=100, seed=0)

@@ -44,7 +44,7 @@ from vtgen.core.spectrum import log_radial_profiles, LUMA, QUANTISATION_PSD
 __all__ = [
     "RANDOM_ENCODER_SEED", "RANDOM_ENCODER_CHANNELS", "BLUR_FRACTION", "QUANTISATION_PSD",
     "RandomEncoder", "PenultimateFeatures", "classifier_encoder", "image_features",
-    "kid", "fid", "fid_interval", "radial_power_spectrum", "spectrum_distance", "log_spectra",
+    "kid", "fid", "fid_interval", "fid_and_interval", "radial_power_spectrum", "spectrum_distance", "log_spectra",
     "TwoSampleResult", "two_sample_test", "prdc_scores", "MemorisationResult", "memorisation",
     "memorisation_from_distances", "pairwise_distances", "DiversityResult", "diversity_ratio", "grey_pixels",
     "median_interval",
@@ -309,7 +309,14 @@ def _fid_from_grams(g_xx: np.ndarray, g_yy: np.ndarray, g_xy: np.ndarray, w_x: n
 
 
 def fid_interval(real, fake, resamples: int = 50, seed: int = 0, level: float = 0.95) -> tuple[float, float]:
-    """Percentile bootstrap interval of :func:`fid` over images: each of ``resamples`` draws resamples
+    """The interval of :func:`fid_and_interval` alone."""
+    return fid_and_interval(real, fake, resamples, seed, level)[1:]
+
+
+def fid_and_interval(real, fake, resamples: int = 50, seed: int = 0,
+                     level: float = 0.95) -> tuple[float, float, float]:
+    """(FID, low, high): :func:`fid` from the sets' Gram matrices (equal to it to about 1e-12 relative)
+    and its percentile bootstrap interval over images: each of ``resamples`` draws resamples
     both sets with replacement (numpy generator seeded with ``seed``) and recomputes the FID from the
     sets' Gram matrices (:func:`_fid_from_grams` on the draw's distinct rows with their counts, one
     SVD per draw).
@@ -319,15 +326,16 @@ def fid_interval(real, fake, resamples: int = 50, seed: int = 0, level: float = 
     interval is therefore bias-corrected: the draws are shifted by the bootstrap's estimate of that
     bias (their mean minus the FID of the sets) before their percentiles are taken, so it brackets
     the estimate and has the spread of the draws. Needs at least 2 rows per set and ``resamples`` >= 2
-    (ValueError); (nan, nan) when ``resamples`` is 0.
+    (ValueError); the interval is (nan, nan) when ``resamples`` is 0.
     """
     x, y = _pair(real, fake, 2, "FID")
     if isinstance(resamples, bool) or not isinstance(resamples, int) or resamples < 0 or resamples == 1:
         raise ValueError(f"FID resamples must be 0 or an integer >= 2, got {resamples!r}")
-    if resamples == 0:
-        return math.nan, math.nan
     xs, ys = x.numpy(), y.numpy()
     g_xx, g_yy, g_xy = xs @ xs.T, ys @ ys.T, xs @ ys.T
+    value = _fid_from_grams(g_xx, g_yy, g_xy)
+    if resamples == 0:
+        return value, math.nan, math.nan
     rng = np.random.default_rng(seed)
     draws = np.empty(resamples)
     for b in range(resamples):
@@ -336,10 +344,10 @@ def fid_interval(real, fake, resamples: int = 50, seed: int = 0, level: float = 
         i, j = np.flatnonzero(w_x), np.flatnonzero(w_y)
         draws[b] = _fid_from_grams(g_xx[np.ix_(i, i)], g_yy[np.ix_(j, j)], g_xy[np.ix_(i, j)],
                                    w_x[i].astype(np.float64), w_y[j].astype(np.float64))
-    draws -= draws.mean() - _fid_from_grams(g_xx, g_yy, g_xy)
+    draws -= draws.mean() - value
     tail = (1 - level) / 2
     low, high = np.quantile(draws, [tail, 1 - tail])
-    return max(float(low), 0.0), max(float(high), 0.0)
+    return value, max(float(low), 0.0), max(float(high), 0.0)
 
 
 # --------------------------------------------------------------------------- power spectrum

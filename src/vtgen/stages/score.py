@@ -391,7 +391,7 @@ def _set_metrics(reference: dict, candidate: dict, fid_resamples: int,
             return mean, mean - 1.96 * std, mean + 1.96 * std
 
         record(view, "kid", kid_value)
-        record(view, "fid", lambda: (dist.fid(real, fake), *dist.fid_interval(real, fake, fid_resamples, seed)))
+        record(view, "fid", lambda: dist.fid_and_interval(real, fake, fid_resamples, seed))
 
         def two_sample():
             if min(len(real), len(fake)) < TWO_SAMPLE_MIN_IMAGES:
@@ -786,6 +786,14 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
             table.to_parquet(tmp / f"{name}.parquet", index=False)
             table.to_csv(tmp / f"{name}.csv", index=False, float_format="%.6f")
         (tmp / "summary.json").write_text(json.dumps(_plain(summary), indent=2, allow_nan=False) + "\n")
+    _print_summary(summary)
+    return summary
+
+
+def _print_summary(summary: dict) -> None:
+    """The stage's console lines: set-to-set levels, verdicts, what was not scored, notes, diversity, seconds."""
+    facts, found, timings = summary["distribution"], summary["verdicts"], summary["seconds"]
+    not_scored, notes = summary["not_scored"], summary["notes"]
     for direction, levels in summary["scores"].items():
         name = facts[direction]["ssim_name"]
         parts = [f"{c} {v['set_colour_ssim']:.3f}" for c, v in levels.items() if v["set_colour_ssim"] is not None]
@@ -804,7 +812,6 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
                       f"[{d['low']:.3f}, {d['high']:.3f}], median over {d['classes']} classes")
     print(f"score: {timings['ssim']:.1f} s SSIM, {timings['distribution']:.1f} s distribution metrics, "
           f"{timings['memorisation and diversity']:.1f} s memorisation check and diversity")
-    return summary
 
 
 def _plain(value):
