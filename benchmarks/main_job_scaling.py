@@ -15,11 +15,12 @@ code of that clone (``PYTHONPATH``). It then reads the stages' own ``timing.json
 RSS of the stage process and of its worker processes) and prints one markdown table: per stage the
 seconds at each scale, the least-squares slope in seconds per 1,000 images, and the largest peak RSS.
 Where a stage runs once per direction or modality, its jobs' seconds are summed (they run side by
-side with ``--cores 2``, so the sum is CPU-side work, not the wall they added) and the wall of the
-whole job is printed apart.
+side with ``--cores 2``, so the sum is the work, not the wall they added), with the longest job in
+brackets, and the wall of the whole job is printed apart.
 
     python benchmarks/main_job_scaling.py --scales 1 4 10 --work /tmp/main_scaling
     python benchmarks/main_job_scaling.py --scales 1 --work /tmp/main_scaling   # one scale (reuses its data)
+    python benchmarks/main_job_scaling.py --scales 1 4 10 --work /tmp/main_scaling --table-only
 """
 
 from __future__ import annotations
@@ -120,18 +121,25 @@ def run_scale(work: Path, scale: int) -> dict:
     wall = time.perf_counter() - started
     if result.returncode:
         sys.exit(f"main job at {scale}x failed (rc {result.returncode}); see {log}")
+    return {"scale": scale, "images": images, "wall": wall, "stages": stage_records(clone),
+            "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=clone, capture_output=True,
+                                     text=True).stdout.strip()}
+
+
+def stage_records(clone: Path) -> dict:
+    """{stage: seconds summed over its jobs, the longest job's seconds, jobs, largest peak RSS} from a run's timing.json."""
     stages: dict = {}
     for path in sorted(clone.glob("**/timing.json")):
         record = json.loads(path.read_text())
         stage = record.get("stage") or path.parent.name
-        entry = stages.setdefault(stage, {"seconds": 0.0, "jobs": 0, "peak_rss_mb": 0.0, "peak_rss_children_mb": 0.0})
+        entry = stages.setdefault(stage, {"seconds": 0.0, "longest": 0.0, "jobs": 0, "peak_rss_mb": 0.0,
+                                          "peak_rss_children_mb": 0.0})
         entry["seconds"] += float(record["seconds"])
+        entry["longest"] = max(entry["longest"], float(record["seconds"]))
         entry["jobs"] += 1
         for key in ("peak_rss_mb", "peak_rss_children_mb"):
             entry[key] = max(entry[key], float(record.get(key) or 0.0))
-    return {"scale": scale, "images": images, "wall": wall, "stages": stages,
-            "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=clone, capture_output=True,
-                                     text=True).stdout.strip()}
+    return stages
 
 
 def slope(images: list[int], seconds: list[float]) -> float:
@@ -143,7 +151,7 @@ def slope(images: list[int], seconds: list[float]) -> float:
 
 def table(results: list[dict]) -> str:
     header = " | ".join(f"{r['scale']}x: {r['images']:,} images" for r in results)
-    lines = [f"| stage (jobs) | {header} | slope, s per 1,000 images | peak RSS MB (stage / workers) |",
+    lines = [f"| stage (jobs) | {header} | slope, s per 1,000 images (summed) | peak RSS MB (stage / workers) |",
              "|---|" + "---|" * len(results) + "---|---|"]
     names = [s for s in STAGE_ORDER if any(s in r["stages"] for r in results)]
     names += sorted({s for r in results for s in r["stages"]} - set(names))
@@ -153,7 +161,9 @@ def table(results: list[dict]) -> str:
         jobs = max(c["jobs"] for c in cells if c)
         rss = max(c["peak_rss_mb"] for c in cells if c)
         rss_children = max(c["peak_rss_children_mb"] for c in cells if c)
-        lines.append(f"| {name} ({jobs}) | " + " | ".join(f"{s:.1f} s" for s in seconds)
+        longest = [c["longest"] if c else float("nan") for c in cells]
+        lines.append(f"| {name} ({jobs}) | " + " | ".join(
+            f"{s:.1f} s" if jobs == 1 else f"{s:.1f} s ({w:.1f})" for s, w in zip(seconds, longest))
                      + f" | {slope([r['images'] for r in results], seconds):.1f} | {rss:.0f} / {rss_children:.0f} |")
     walls = [r["wall"] for r in results]
     lines.append("| **main job, wall** | " + " | ".join(f"**{w:.0f} s ({w / 60:.1f} min)**" for w in walls)
@@ -165,17 +175,24 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scales", type=int, nargs="+", default=[1, 4, 10])
     parser.add_argument("--work", type=Path, required=True, help="folder for the datasets, clones and logs (kept)")
+    parser.add_argument("--table-only", action="store_true", help="print the table of finished runs under --work")
     args = parser.parse_args()
     if not SOURCE.exists():
         sys.exit(f"{SOURCE} not found: this benchmark builds its data from vt60_subset")
     args.work.mkdir(parents=True, exist_ok=True)
     results = []
     for scale in args.scales:
+        if args.table_only:
+            result = json.loads((args.work / f"result_x{scale}.json").read_text())
+            result["stages"] = stage_records(args.work / f"clone_x{scale}")
+            results.append(result)
+            continue
         result = run_scale(args.work, scale)
         (args.work / f"result_x{scale}.json").write_text(json.dumps(result, indent=1) + "\n")
         print(f"{scale}x: {result['images']} images, {result['wall']:.0f} s", flush=True)
         results.append(result)
-    cpu = platform.processor() or platform.machine()
+    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                if line.startswith("model name")), platform.machine()) if Path("/proc/cpuinfo").exists() else platform.machine()
     print(f"\ncommit {results[0]['commit']}, {os.cpu_count()} cores ({cpu}), python {platform.python_version()}\n")
     print(table(results))
 
