@@ -1,0 +1,119 @@
+"""GPU check: the CUDA path of the training step and of the classifier, with seconds per step and images per second.
+
+For a lent GPU machine (the project never needs one). Prints one markdown table per part:
+
+* **translation step** - ``TranslatorTraining.step`` of params.yaml's ``fast`` preset (pix2pix and the
+  class-paired ``class_gan`` objective with params.yaml's ``translation.class_gan``, 10 classes) and
+  ``paper`` preset, fp32 and bf16 autocast, on in-memory random batches: median seconds per step over
+  ``--steps`` steps after ``--warmup`` (CUDA synchronised per step), and the losses' finiteness;
+* **classifier** - ``train_classifier`` (the classify stage's AlexNet, params.yaml's ``classify``
+  section) for ``--epochs`` epochs on random uint8 tiles of the size of the 10x scaling run's tactile job
+  (3,360 training, 960 test tiles, 10 classes): training and evaluation images per second, fp32 and
+  bf16. Random tiles: the accuracies say nothing; only the speed does.
+
+    python benchmarks/gpu_check.py                 # on the GPU machine, from the repository root
+    python benchmarks/gpu_check.py --device cpu --steps 5 --warmup 2 --epochs 1   # the same code on a CPU
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "src"))
+
+from vtgen.core.classifier import train_classifier  # noqa: E402
+from vtgen.core.translator import TranslatorTraining  # noqa: E402
+
+CLASSES = 10
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def step_seconds(settings: dict, device: torch.device, precision: str, steps: int, warmup: int) -> tuple[float, bool]:
+    """Median seconds of one training step, and whether every loss stayed finite."""
+    torch.manual_seed(0)
+    class_gan = settings.get("objective") == "class_gan"
+    training = TranslatorTraining(settings, device, precision, num_classes=CLASSES if class_gan else 0)
+    size, batch = settings["size"], settings["batch_size"] + settings["batch_size"] % 2
+    x = torch.rand(batch, 3, size, size, device=device) * 2 - 1
+    y = torch.rand(batch, 3, size, size, device=device) * 2 - 1
+    labels = torch.arange(batch, device=device) // 2 % CLASSES
+    times, finite = [], True
+    for i in range(warmup + steps):
+        _sync(device)
+        started = time.perf_counter()
+        losses = training.step(x, y, labels) if class_gan else training.step(x, y)
+        _sync(device)
+        if i >= warmup:
+            times.append(time.perf_counter() - started)
+    finite = all(bool(torch.isfinite(v).all()) for v in losses.values())
+    return statistics.median(times), finite
+
+
+def classifier_speed(cfg: dict, device: torch.device, precision: str, epochs: int) -> dict:
+    generator = torch.Generator().manual_seed(0)
+    size = cfg["size"]
+    train_x = torch.randint(0, 256, (3360, 3, size, size), dtype=torch.uint8, generator=generator)
+    train_y = torch.randint(0, CLASSES, (3360,), generator=generator)
+    test_x = torch.randint(0, 256, (960, 3, size, size), dtype=torch.uint8, generator=generator)
+    test_y = torch.randint(0, CLASSES, (960,), generator=generator)
+    settings = dict(cfg, epochs=epochs)
+    started = time.perf_counter()
+    run = train_classifier(train_x, train_y, test_x, test_y, CLASSES, settings, seed=0, device=device,
+                           precision=precision)
+    return {"seconds": time.perf_counter() - started, "train_per_s": run.train_images / run.train_seconds,
+            "eval_per_s": run.eval_images / run.eval_seconds, "final_loss": run.train_loss[-1]}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cuda")
+    parser.add_argument("--steps", type=int, default=50)
+    parser.add_argument("--warmup", type=int, default=10)
+    parser.add_argument("--epochs", type=int, default=3)
+    args = parser.parse_args()
+    device = torch.device(args.device)
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
+    print(f"torch {torch.__version__}, {name}, bf16 supported: "
+          f"{torch.cuda.is_bf16_supported() if device.type == 'cuda' else 'n/a'}\n")
+
+    fast, paper = params["presets"]["fast"], params["presets"]["paper"]
+    class_gan = dict(params["translation"]["class_gan"])
+    if class_gan.get("skips") == "all":
+        class_gan["skips"] = None  # the generator's spelling of every skip connection (as the train stage does)
+    variants = {"fast, pix2pix": fast,
+                "fast, class_gan": dict(fast, objective="class_gan", **class_gan),
+                "paper, pix2pix": paper}
+    print("| preset, objective | batch | precision | s/step (median) | images/s | losses finite |")
+    print("|---|---|---|---|---|---|")
+    for label, settings in variants.items():
+        for precision in ("fp32", "bf16"):
+            seconds, finite = step_seconds(settings, device, precision, args.steps, args.warmup)
+            batch = settings["batch_size"] + settings["batch_size"] % 2
+            print(f"| {label} | {batch} | {precision} | {seconds:.4f} | {batch / seconds:.0f} | {finite} |", flush=True)
+
+    cfg = params["classify"]
+    print(f"\nclassifier: {cfg['size']} px, width {cfg['width']}, batch {cfg['batch_size']}, {args.epochs} epochs, "
+          "3,360 training and 960 test tiles (random)\n")
+    print("| precision | seconds | training images/s | evaluation images/s | last loss |")
+    print("|---|---|---|---|---|")
+    for precision in ("fp32", "bf16"):
+        r = classifier_speed(cfg, device, precision, args.epochs)
+        print(f"| {precision} | {r['seconds']:.1f} | {r['train_per_s']:.0f} | {r['eval_per_s']:.0f} | "
+              f"{r['final_loss']:.3f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
