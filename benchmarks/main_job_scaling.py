@@ -33,6 +33,7 @@ import shutil
 import subprocess
 import sys
 import time
+import zlib
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -78,7 +79,7 @@ def build_dataset(root: Path, scale: int) -> int:
             if copy == 0:
                 shutil.copyfile(path, target)
             else:
-                jobs.append((str(path), str(target), hash((path.name, copy)) % 2**32))
+                jobs.append((str(path), str(target), zlib.crc32(f"{path.name}:{copy}".encode())))
             count += 1
     with ProcessPoolExecutor(max_workers=2) as pool:
         list(pool.map(_copy_frame, jobs, chunksize=64))
