@@ -14,7 +14,8 @@ SETTINGS = {"size": 32, "ngf": 8, "ndf": 8, "kernel": 4, "discriminator": "patch
             "gan_loss": "bce", "l1_weight": 100.0, "optimizer": "adam", "lr": 2e-4, "betas": [0.5, 0.999],
             "batch_size": 4, "iterations": 4, "noise": False}
 CLASS_GAN = {"objective": "class_gan", "r1": 0.1, "diffaugment": True, "mode_seeking": 1.0, "mode_seeking_pool": 1,
-             "statistics": 0.0, "class_guidance": 0.0, "skips": None, "d_lr_ratio": 1.0}  # the params.yaml default
+             "statistics": 0.0, "class_guidance": 0.0, "skips": None, "d_lr_ratio": 1.0,
+             "latent": 0}  # the params.yaml default
 
 
 def test_translation_moves_the_image_by_whole_pixels_and_fills_zeros():
@@ -244,7 +245,7 @@ def test_auto_picks_the_objective_from_the_pair_kind():
     assert resolve_objective("pix2pix", pair_data(fixed=False)) == ("pix2pix", "as set")
     translation = {"preset": "fast", "class_gan": {"r1": 0.1, "diffaugment": True, "mode_seeking": 1.0,
                                                    "mode_seeking_pool": 1, "statistics": 0.0, "class_guidance": 0.0, "skips": "all",
-                                                   "d_lr_ratio": 1.0}}
+                                                   "d_lr_ratio": 1.0, "latent": 0}}
     assert objective_settings(SETTINGS, translation, "pix2pix") is SETTINGS  # pix2pix: the preset, untouched
     assert objective_settings(SETTINGS, translation, "class_gan") == dict(SETTINGS, **CLASS_GAN)
     with pytest.raises(ValueError, match="presets.fast.batch_size"):
@@ -358,3 +359,56 @@ def test_the_discriminator_learning_rate_ratio_acts_on_class_gan_only():
     assert [g["lr"] for g in training.opt_g.param_groups] == [SETTINGS["lr"]]
     pix2pix = TranslatorTraining(dict(SETTINGS, d_lr_ratio=4.0), "cpu")  # pix2pix keeps the preset's rates
     assert [g["lr"] for g in pix2pix.opt_d.param_groups] == [SETTINGS["lr"]]
+
+
+def test_latent_0_reproduces_the_step_without_a_code_bit_for_bit():
+    def stepped(settings):
+        torch.manual_seed(0)
+        training = TranslatorTraining(settings, "cpu", num_classes=2)
+        training.step(*batch())
+        return weights(training.generator) + weights(training.discriminator)
+
+    without = {k: v for k, v in CLASS_GAN.items() if k != "latent"}
+    assert all(torch.equal(a, b) for a, b in zip(stepped(dict(SETTINGS, **without)),
+                                                 stepped(dict(SETTINGS, **CLASS_GAN))))
+
+
+def test_the_latent_code_changes_the_output_and_a_seed_repeats_it():
+    from vtgen.core.models import UNetGenerator
+    from vtgen.stages.generate import translate
+
+    torch.manual_seed(0)
+    generator = UNetGenerator(32, 8, 4, latent=4).eval()
+    assert generator.encoder[0][0].in_channels == 3 + 4
+    x = batch()[0]
+    with torch.no_grad():
+        same = generator(x, torch.zeros(4, 4)), generator(x, torch.zeros(4, 4))
+        other = generator(x, torch.full((4, 4), 2.0))
+    assert torch.equal(*same)
+    assert (same[0] - other).abs().mean() > 1e-3  # the code reaches the output
+    images = torch.randint(0, 256, (6, 3, 32, 32), dtype=torch.uint8)
+    first, again, draw = (translate(generator, images, batch_size=4, seed=s) for s in (0, 0, 1))
+    assert torch.equal(first, again)
+    assert not torch.equal(first, draw)
+    with pytest.raises(ValueError, match="code of shape"):
+        generator(x, torch.zeros(4, 3))
+    with pytest.raises(ValueError, match="no latent code"):
+        UNetGenerator(32, 8, 4)(x, torch.zeros(4, 4))
+    with pytest.raises(ValueError, match="latent must be"):
+        UNetGenerator(32, 8, 4, latent=-1)
+
+
+def test_a_generator_with_a_latent_code_is_rebuilt_as_trained(tmp_path):
+    from vtgen.io.checkpoints import load_translator, save_generator
+    from vtgen.stages.generate import translate
+
+    settings = objective_settings(dict(SETTINGS), {"preset": "fast", "class_gan": dict(
+        {k: v for k, v in CLASS_GAN.items() if k != "objective"}, latent=4)}, "class_gan")
+    torch.manual_seed(0)
+    training = TranslatorTraining(settings, "cpu", num_classes=2)
+    training.step(*batch())
+    save_generator(tmp_path / "generator.pt", training.generator, settings, "v2t", "all")
+    loaded, _ = load_translator(tmp_path)
+    assert loaded.latent == 4
+    images = torch.randint(0, 256, (4, 3, 32, 32), dtype=torch.uint8)
+    assert torch.equal(translate(loaded, images, seed=3), translate(training.generator.eval(), images, seed=3))

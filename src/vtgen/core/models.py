@@ -113,6 +113,10 @@ class UNetGenerator(nn.Module):
     ReLU of the ``min(3, depth - 2)`` decoder levels nearest the bottleneck (omitted if ``dropout == 0``).
     ``skips`` keeps only that many skip connections, the ones nearest the bottleneck (coarse layout), and
     drops the finer ones that copy the input's geometry into the output (None: all ``depth - 1``, the U-Net).
+    ``latent`` k > 0 adds a random code z ~ N(0, I_k) per image, broadcast over the image as k more input
+    channels (BicycleGAN's "add to input", Zhu et al. 2017), so one input can give several outputs;
+    :meth:`forward` draws z from torch's global generator unless it is given (N x k). ``in_channels``
+    counts the image and conditioning channels only.
     """
 
     def __init__(
@@ -124,8 +128,12 @@ class UNetGenerator(nn.Module):
         out_channels: int = 3,
         dropout: float = 0.5,
         skips: int | None = None,
+        latent: int = 0,
     ) -> None:
         super().__init__()
+        if isinstance(latent, bool) or not isinstance(latent, int) or latent < 0:
+            raise ValueError(f"latent must be an integer >= 0, got {latent!r}")
+        self.latent = latent
         check_kernel(kernel)
         if not 0.0 <= dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {dropout!r}")
@@ -141,7 +149,7 @@ class UNetGenerator(nn.Module):
 
         encoder: list[nn.Module] = []
         for level in range(depth):
-            source = in_channels if level == 0 else widths[level - 1]
+            source = in_channels + latent if level == 0 else widths[level - 1]
             if level == 0:
                 block = nn.Sequential(downsampling_conv(source, widths[0], kernel, bias=True), nn.LeakyReLU(0.2))
             elif level == depth - 1:
@@ -176,8 +184,17 @@ class UNetGenerator(nn.Module):
         self.decoder = nn.ModuleList(decoder)
         self.apply(init_weights)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
         check_image_batch(x, self.in_channels, self.size, type(self).__name__)
+        if self.latent:
+            if z is None:
+                z = torch.randn(x.shape[0], self.latent, device=x.device)
+            if z.shape != (x.shape[0], self.latent):
+                raise ValueError(f"{type(self).__name__}: expected a code of shape {(x.shape[0], self.latent)}, "
+                                 f"got {tuple(z.shape)}")
+            x = torch.cat([x, z.to(x.dtype)[:, :, None, None].expand(-1, -1, x.shape[2], x.shape[3])], dim=1)
+        elif z is not None:
+            raise ValueError(f"{type(self).__name__}: this generator has no latent code (latent 0)")
         skips = []
         for block in self.encoder:
             x = block(x)

@@ -57,8 +57,8 @@ class TranslatorTraining:
     ``input_channels`` is the generator's input: the 3 image channels plus those of a
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
-    ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``statistics``, ``class_guidance``, ``skips``
-    (see :meth:`class_step`) and ``d_lr_ratio`` (D's learning rate over G's), and needs ``num_classes``.
+    ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``statistics``, ``class_guidance``, ``skips``,
+    ``latent`` (see :meth:`class_step`) and ``d_lr_ratio`` (D's learning rate over G's), and needs ``num_classes``.
     """
 
     def __init__(self, settings: dict, device: torch.device | str = "cpu", precision: str = "fp32",
@@ -71,7 +71,8 @@ class TranslatorTraining:
         self.settings, self.device, self.precision = settings, torch.device(device), precision
         size, kernel = settings["size"], settings["kernel"]
         self.generator = UNetGenerator(size, settings["ngf"], kernel, in_channels=input_channels,
-                                       skips=settings.get("skips")).to(self.device).train()
+                                       skips=settings.get("skips"),
+                                       latent=settings.get("latent", 0)).to(self.device).train()
         if self.objective == "class_gan":
             self.discriminator = ProjectionDiscriminator(
                 num_classes, settings["ndf"], settings["patch_layers"], kernel,
@@ -179,6 +180,8 @@ class TranslatorTraining:
         D += w·CE(h(A(y)), c), and G is asked to be recognised as its input's class, G += w·CE(h(A(G(x))), c)
         (AC-GAN, Odena et al. 2017, with the classifier trained on real images only): a generator that is
         not told the class must read it from its input.
+        With ``latent`` k > 0 the generator draws its own code z ~ N(0, I_k) per row, so the two rows of a
+        pair differ in input and code, and the mode-seeking term keeps the code from being ignored.
         ``loss_g_l1`` is |G(x) − y| against the random partner: logged, never trained on.
         """
         cfg = self.settings

@@ -39,19 +39,25 @@ IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".n
 
 @torch.no_grad()
 def translate(generator: UNetGenerator, images: torch.Tensor, batch_size: int = 32,
-              conditioning: Conditioning | None = None, labels: torch.Tensor | None = None) -> torch.Tensor:
+              conditioning: Conditioning | None = None, labels: torch.Tensor | None = None,
+              seed: int = 0) -> torch.Tensor:
     """uint8 N x 3 x S x S -> uint8 N x 3 x S x S through ``generator`` (eval mode, no dropout); with a
-    ``conditioning`` other than none, ``labels`` (N class indices) says what each image is asked to be."""
+    ``conditioning`` other than none, ``labels`` (N class indices) says what each image is asked to be.
+    A generator with a latent code gets z ~ N(0, I) drawn from a generator seeded with ``seed`` (so the
+    same call gives the same images; another seed, another draw)."""
     device = next(generator.parameters()).device
     conditioning = conditioning or Conditioning()
     if conditioning.kind != "none" and (labels is None or len(labels) != len(images)):
         raise ValueError(f"a model conditioned on '{conditioning.kind}' needs one class per image")
+    latent = getattr(generator, "latent", 0)
+    codes = torch.randn(len(images), latent, generator=torch.Generator().manual_seed(seed)) if latent else None
     out = []
     for i in range(0, len(images), batch_size):
         x = to_model_range(images[i:i + batch_size]).to(device)
         if conditioning.kind != "none":
             x = conditioning.condition(x, labels[i:i + batch_size])
-        out.append(to_uint8(generator(x)).cpu())
+        z = None if codes is None else codes[i:i + batch_size].to(device)
+        out.append(to_uint8(generator(x, z)).cpu())
     return torch.cat(out) if out else images.clone()
 
 
@@ -141,7 +147,7 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
                 chunk = rows.iloc[start:start + cfg["batch_size"]]
                 outputs = translate(generator, read_tiles(list(chunk["input_path"]), meta["size"]),
                                     conditioning=meta["conditioning"],
-                                    labels=meta["conditioning"].labels(list(chunk["class"])))
+                                    labels=meta["conditioning"].labels(list(chunk["class"])), seed=start)
                 for name, image in zip(chunk["output_name"], outputs):
                     (tmp / name).parent.mkdir(parents=True, exist_ok=True)
                     write_png(tmp / name, image.permute(1, 2, 0).numpy())
