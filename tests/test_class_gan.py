@@ -15,7 +15,7 @@ SETTINGS = {"size": 32, "ngf": 8, "ndf": 8, "kernel": 4, "discriminator": "patch
             "batch_size": 4, "iterations": 4, "noise": False}
 CLASS_GAN = {"objective": "class_gan", "r1": 0.1, "diffaugment": True, "mode_seeking": 1.0, "mode_seeking_pool": 1,
              "statistics": 0.0, "class_guidance": 0.0, "skips": None, "d_lr_ratio": 1.0,
-             "latent": 0}  # the params.yaml default
+             "latent": 0, "upsample": "transpose"}  # the params.yaml default
 
 
 def test_translation_moves_the_image_by_whole_pixels_and_fills_zeros():
@@ -245,7 +245,8 @@ def test_auto_picks_the_objective_from_the_pair_kind():
     assert resolve_objective("pix2pix", pair_data(fixed=False)) == ("pix2pix", "as set")
     translation = {"preset": "fast", "class_gan": {"r1": 0.1, "diffaugment": True, "mode_seeking": 1.0,
                                                    "mode_seeking_pool": 1, "statistics": 0.0, "class_guidance": 0.0, "skips": "all",
-                                                   "d_lr_ratio": 1.0, "latent": 0}}
+                                                   "d_lr_ratio": 1.0, "latent": 0,
+                                                   "upsample": "transpose"}}
     assert objective_settings(SETTINGS, translation, "pix2pix") is SETTINGS  # pix2pix: the preset, untouched
     assert objective_settings(SETTINGS, translation, "class_gan") == dict(SETTINGS, **CLASS_GAN)
     with pytest.raises(ValueError, match="presets.fast.batch_size"):
@@ -403,12 +404,31 @@ def test_a_generator_with_a_latent_code_is_rebuilt_as_trained(tmp_path):
     from vtgen.stages.generate import translate
 
     settings = objective_settings(dict(SETTINGS), {"preset": "fast", "class_gan": dict(
-        {k: v for k, v in CLASS_GAN.items() if k != "objective"}, latent=4)}, "class_gan")
+        {k: v for k, v in CLASS_GAN.items() if k != "objective"}, latent=4, upsample="resize")}, "class_gan")
     torch.manual_seed(0)
     training = TranslatorTraining(settings, "cpu", num_classes=2)
     training.step(*batch())
     save_generator(tmp_path / "generator.pt", training.generator, settings, "v2t", "all")
     loaded, _ = load_translator(tmp_path)
-    assert loaded.latent == 4
+    assert (loaded.latent, loaded.upsample) == (4, "resize")
     images = torch.randint(0, 256, (4, 3, 32, 32), dtype=torch.uint8)
     assert torch.equal(translate(loaded, images, seed=3), translate(training.generator.eval(), images, seed=3))
+
+
+def test_resize_upsampling_has_no_checkerboard_on_a_constant_map():
+    """A constant map stays constant away from the border through a resize convolution, while a stride-2
+    transposed convolution with the same random weights stamps its 2-periodic overlap pattern on it."""
+    from vtgen.core.models import resize_conv, upsampling_conv, UNetGenerator
+
+    torch.manual_seed(0)
+    x = torch.ones(1, 4, 8, 8)
+    resize, transpose = resize_conv(4, 2, bias=False), upsampling_conv(4, 2, 4, bias=False)
+    with torch.no_grad():
+        smooth, stamped = resize(x)[..., 2:-2, 2:-2], transpose(x)[..., 2:-2, 2:-2]
+    assert smooth.shape == stamped.shape == (1, 2, 12, 12)
+    assert smooth.std(dim=(-2, -1)).max() < 1e-6
+    assert stamped.std(dim=(-2, -1)).min() > 1e-3
+    assert torch.equal(stamped[..., :-2, :-2], stamped[..., 2:, 2:])  # period 2
+    assert UNetGenerator(32, 8, 4, upsample="resize")(torch.zeros(2, 3, 32, 32)).shape == (2, 3, 32, 32)
+    with pytest.raises(ValueError, match="upsample must be"):
+        UNetGenerator(32, 8, 4, upsample="bilinear")

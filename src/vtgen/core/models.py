@@ -59,6 +59,16 @@ def upsampling_conv(in_channels: int, out_channels: int, kernel: int, bias: bool
     )
 
 
+UPSAMPLINGS = ("transpose", "resize")
+
+
+def resize_conv(in_channels: int, out_channels: int, bias: bool) -> nn.Sequential:
+    """Nearest-neighbour 2x upsampling, then a 3x3 convolution: ``H x W`` to ``2H x 2W`` without the
+    uneven kernel overlap that gives a stride-2 transposed convolution its checkerboard (Odena et al. 2016)."""
+    return nn.Sequential(nn.Upsample(scale_factor=2, mode="nearest"),
+                         nn.Conv2d(in_channels, out_channels, 3, padding=1, bias=bias))
+
+
 def init_weights(module: nn.Module) -> None:
     """DCGAN/pix2pix initialisation of one module (use with ``net.apply(init_weights)``):
     conv and transposed-conv weights ~ N(0, 0.02), BatchNorm weights ~ N(1, 0.02), their biases 0.
@@ -116,7 +126,8 @@ class UNetGenerator(nn.Module):
     ``latent`` k > 0 adds a random code z ~ N(0, I_k) per image, broadcast over the image as k more input
     channels (BicycleGAN's "add to input", Zhu et al. 2017), so one input can give several outputs;
     :meth:`forward` draws z from torch's global generator unless it is given (N x k). ``in_channels``
-    counts the image and conditioning channels only.
+    counts the image and conditioning channels only. ``upsample`` 'resize' doubles each decoder level by
+    :func:`resize_conv` instead of a transposed convolution ('transpose', pix2pix's).
     """
 
     def __init__(
@@ -129,8 +140,13 @@ class UNetGenerator(nn.Module):
         dropout: float = 0.5,
         skips: int | None = None,
         latent: int = 0,
+        upsample: str = "transpose",
     ) -> None:
         super().__init__()
+        if upsample not in UPSAMPLINGS:
+            raise ValueError(f"upsample must be one of {UPSAMPLINGS}, got {upsample!r}")
+        self.upsample = upsample
+        up = (lambda i, o, bias: upsampling_conv(i, o, kernel, bias)) if upsample == "transpose" else resize_conv
         if isinstance(latent, bool) or not isinstance(latent, int) or latent < 0:
             raise ValueError(f"latent must be an integer >= 0, got {latent!r}")
         self.latent = latent
@@ -169,11 +185,11 @@ class UNetGenerator(nn.Module):
         for level in range(depth):
             source = widths[depth - 1] if level == 0 else (2 if level <= self.skips else 1) * widths[depth - 1 - level]
             if level == depth - 1:
-                block = nn.Sequential(upsampling_conv(source, out_channels, kernel, bias=True), nn.Tanh())
+                block = nn.Sequential(up(source, out_channels, bias=True), nn.Tanh())
             else:
                 target = widths[depth - 2 - level]
                 layers: list[nn.Module] = [
-                    upsampling_conv(source, target, kernel, bias=False),
+                    up(source, target, bias=False),
                     nn.BatchNorm2d(target),
                     nn.ReLU(),
                 ]

@@ -58,7 +58,7 @@ class TranslatorTraining:
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
     ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``statistics``, ``class_guidance``, ``skips``,
-    ``latent`` (see :meth:`class_step`) and ``d_lr_ratio`` (D's learning rate over G's), and needs ``num_classes``.
+    ``latent``, ``upsample`` (see :meth:`class_step`) and ``d_lr_ratio`` (D's learning rate over G's), and needs ``num_classes``.
     """
 
     def __init__(self, settings: dict, device: torch.device | str = "cpu", precision: str = "fp32",
@@ -72,7 +72,8 @@ class TranslatorTraining:
         size, kernel = settings["size"], settings["kernel"]
         self.generator = UNetGenerator(size, settings["ngf"], kernel, in_channels=input_channels,
                                        skips=settings.get("skips"),
-                                       latent=settings.get("latent", 0)).to(self.device).train()
+                                       latent=settings.get("latent", 0),
+                                       upsample=settings.get("upsample", "transpose")).to(self.device).train()
         if self.objective == "class_gan":
             self.discriminator = ProjectionDiscriminator(
                 num_classes, settings["ndf"], settings["patch_layers"], kernel,
@@ -182,6 +183,7 @@ class TranslatorTraining:
         not told the class must read it from its input.
         With ``latent`` k > 0 the generator draws its own code z ~ N(0, I_k) per row, so the two rows of a
         pair differ in input and code, and the mode-seeking term keeps the code from being ignored.
+        ``upsample`` 'resize' builds G's decoder from resize convolutions (no checkerboard without a pixel loss to hide it).
         ``loss_g_l1`` is |G(x) − y| against the random partner: logged, never trained on.
         """
         cfg = self.settings

@@ -110,7 +110,7 @@ def load_translator(model: str | Path, device: str = "cpu") -> tuple[UNetGenerat
         conditioning = Conditioning.from_record(saved.get("conditioning"))
         generator = UNetGenerator(settings["size"], settings["ngf"], settings["kernel"],
                                   in_channels=3 + conditioning.extra_channels, skips=settings.get("skips"),
-                                  latent=settings.get("latent", 0))
+                                  latent=settings.get("latent", 0), upsample=settings.get("upsample", "transpose"))
         generator.load_state_dict(saved["state_dict"])
         meta = {k: saved[k] for k in ("direction", "scope", "input_modality", "output_modality")}
         meta["conditioning"] = conditioning
