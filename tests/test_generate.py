@@ -14,7 +14,7 @@ from conftest import REPO, TINY_MODEL, tiny_params, write_image
 from conftest import pair_tables
 from vtgen.cli import main
 from vtgen.io.checkpoints import load_translator
-from vtgen.stages.generate import run_generate, select_inputs, translate, translate_files
+from vtgen.stages.generate import other_codes, run_generate, select_inputs, translate, translate_files
 from vtgen.core.models import UNetGenerator
 from vtgen.io.checkpoints import input_preparation, save_generator
 from vtgen.io.images import read_tiles
@@ -73,6 +73,35 @@ def test_run_generate_writes_images_and_a_linked_table(tmp_path, model_dir, monk
     assert (tmp_path / "generated/v2t/preview.png").is_file()
     with pytest.raises(ValueError, match="model translates v2t, not t2v"):
         run_generate(params, "t2v", "pairs", "models/v2t", "generated/t2v", progress=False)
+
+
+def test_the_preview_shows_other_latent_codes_of_each_input(tmp_path, monkeypatch):
+    """A generator with a latent code gets two more columns of outputs per input in the preview (other codes
+    of the same inputs); without one the preview keeps its three groups."""
+    monkeypatch.chdir(tmp_path)
+    pairs, splits = pair_tables(tmp_path)
+    (tmp_path / "pairs").mkdir()
+    pairs.to_parquet("pairs/v2t.parquet")
+    splits.to_parquet("pairs/splits.parquet")
+    torch.manual_seed(0)
+    widths = {}
+    for latent in (0, 4):
+        folder = tmp_path / f"models{latent}/v2t/all"
+        folder.mkdir(parents=True)
+        save_generator(folder / "generator.pt", UNetGenerator(32, 8, 4, latent=latent), dict(SETTINGS, latent=latent),
+                       "v2t", "all")
+        run_generate(tiny_params(), "v2t", "pairs", folder.parent, f"generated{latent}", progress=False)
+        widths[latent] = np.asarray(Image.open(f"generated{latent}/preview.png")).shape[1]
+    per_group = 4 * 96  # labelled_sheet: per_class cells of 96 px per group
+    assert widths[4] - widths[0] == 2 * per_group
+    generator, meta = load_translator(tmp_path / "models4/v2t/all")
+    test_rows = pd.read_parquet("generated4/generated.parquet").query("split == 'test'")
+    test_rows = test_rows.assign(output_name=test_rows["output_path"])
+    draws = other_codes(generator, meta, test_rows)
+    written = np.asarray(Image.open(test_rows["output_path"].iloc[0]))
+    first = draws[test_rows["output_name"].iloc[0]]
+    assert len(first) == 2 and not np.array_equal(first[0], first[1])
+    assert first[0].shape == written.shape
 
 
 def test_translate_files_translates_a_folder(tmp_path, model_dir):

@@ -82,24 +82,43 @@ def select_inputs(splits: pd.DataFrame, pairs: pd.DataFrame, direction: str, sco
 
 
 def comparison_sheet(rows: pd.DataFrame, image_root: Path, per_class: int = 4,
-                     real_examples: dict[str, list[str]] | None = None) -> np.ndarray:
+                     real_examples: dict[str, list[str]] | None = None,
+                     other_draws: dict[str, list[np.ndarray]] | None = None) -> np.ndarray:
     """One row per class: inputs | generated (``output_name`` under ``image_root``) | ground truth where the
     pair is aligned, else ``real_examples[class]`` (real target-modality images of the class, not partners of
-    the inputs: what generated images of the class should look like); grey when neither exists."""
+    the inputs: what generated images of the class should look like); grey when neither exists.
+    ``other_draws`` (output_name -> images of the same input under other latent codes) adds one group per draw."""
     def read(path) -> np.ndarray | None:
         return np.asarray(Image.open(path).convert("RGB")) if path else None
 
-    real_examples = real_examples or {}
+    real_examples, other_draws = real_examples or {}, other_draws or {}
+    k = max((len(v) for v in other_draws.values()), default=0)
     sheet_rows = []
     for cls, group in rows.groupby("class", sort=True):
         group = group.head(per_class)
         truths = list(group["ground_truth_path"])
         if not any(truths):
             truths = (list(real_examples.get(cls, [])) + [""] * per_class)[:len(group)]
+        draws = [[(other_draws.get(n) or [None] * k)[d] for n in group["output_name"]] for d in range(k)]
         sheet_rows.append((cls, [[read(p) for p in group["input_path"]],
-                                 [read(image_root / n) for n in group["output_name"]],
+                                 [read(image_root / n) for n in group["output_name"]], *draws,
                                  [read(p) for p in truths]]))
-    return labelled_sheet(sheet_rows, ["input", "generated", "ground truth, or real of the class"], per_class)
+    titles = ["input", "generated", *[f"generated, code {d + 2}" for d in range(k)], "ground truth, or real of the class"]
+    return labelled_sheet(sheet_rows, titles, per_class)
+
+
+def other_codes(generator: UNetGenerator, meta: dict, rows: pd.DataFrame, per_class: int = 4,
+                codes: int = 2) -> dict[str, list[np.ndarray]]:
+    """For the first ``per_class`` rows of each class (the preview's inputs), ``codes`` more translations
+    under other latent codes (``translate`` seeds 10**6, 10**6 + 1, ...; the written images use their batch start)."""
+    shown = rows.groupby("class", sort=True).head(per_class)
+    if shown.empty:
+        return {}
+    inputs = read_tiles(list(shown["input_path"]), meta["size"])
+    labels = meta["conditioning"].labels(list(shown["class"]))
+    outputs = [translate(generator, inputs, conditioning=meta["conditioning"], labels=labels, seed=10**6 + d)
+               for d in range(codes)]
+    return {name: [o[i].permute(1, 2, 0).numpy() for o in outputs] for i, name in enumerate(shown["output_name"])}
 
 
 def real_examples_of(splits: pd.DataFrame, direction: str, per_class: int = 4) -> dict[str, list[str]]:
@@ -129,7 +148,7 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
     pairs_dir, models_dir, out_dir = Path(pairs_dir), Path(models_dir), Path(out_dir)
     pairs = read_table(pairs_dir / f"{direction}.parquet", PAIR_COLUMNS, f"a {direction} pair table")
     splits = read_table(pairs_dir / "splits.parquet", SPLIT_COLUMNS, "the split table of the pairs stage")
-    tables, summary = [], {"direction": direction, "scopes": {}}
+    tables, summary, draws = [], {"direction": direction, "scopes": {}}, {}
     with atomic_output_dir(out_dir) as tmp:
         for scope in params["translation"]["scope"]:
             status = _training_status(models_dir / scope)
@@ -151,6 +170,8 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
                 for name, image in zip(chunk["output_name"], outputs):
                     (tmp / name).parent.mkdir(parents=True, exist_ok=True)
                     write_png(tmp / name, image.permute(1, 2, 0).numpy())
+            if generator.latent:
+                draws.update(other_codes(generator, meta, rows[rows["split"] == "test"]))
             rows["output_path"] = [str(out_dir / n) for n in rows["output_name"]]
             rows["direction"], rows["scope"], rows["model"] = direction, scope, str(models_dir / scope / "generator.pt")
             tables.append(rows)
@@ -161,7 +182,8 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
         table[GENERATED_COLUMNS].to_parquet(tmp / "generated.parquet", index=False)
         if tables:
             write_png(tmp / "preview.png", comparison_sheet(table[table["split"] == "test"], tmp,
-                                                            real_examples=real_examples_of(splits, direction)))
+                                                            real_examples=real_examples_of(splits, direction),
+                                                            other_draws=draws))
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     for scope, counts in summary["scopes"].items():
         print(f"generate {direction}/{scope}: {counts['test']} test and {counts['train']} training inputs translated "
