@@ -53,3 +53,20 @@ def test_easy_class_gets_the_smaller_or_shorter_setting_and_train_json_says_so()
     compute = record["compute"]
     assert compute["gflop"] < compute["fixed_large_gflop"] and 0 < compute["saved_share"] < 1
     assert set(record["probe"]) == {"2", "16"}
+
+
+def test_a_rerun_that_trains_afresh_logs_what_the_first_run_logged(tmp_path):
+    """A rerun whose checkpoints match takes the probes from them and, its final checkpoint being finished,
+    trains the chosen width afresh from step 0. Its log (and so its early-stopping decision) must equal the
+    first run's, where the final run continued the probe: the probe validates at the same steps."""
+    def logged(history):
+        return [{k: v for k, v in row.items() if k not in ("images_per_s", "seconds")} for row in history]
+
+    run = dict(RUN, resume=True, checkpoint_every=80, capacity=dict(CAPACITY, patience=10))  # runs to the end
+    first, _, record = train_capacity_auto(easy_and_hard(8, 0), easy_and_hard(3, 1), SETTINGS, run, "v2t", "all",
+                                           tmp_path, progress=False)
+    again, _, again_record = train_capacity_auto(easy_and_hard(8, 0), easy_and_hard(3, 1), SETTINGS, run, "v2t", "all",
+                                                 tmp_path, progress=False)
+    assert record["steps"] == SETTINGS["iterations"] and again.resumed_from == 0 and again_record["steps"] == 240
+    assert [r["step"] for r in first.history if "val_by_class" in r] == list(range(40, record["steps"] + 1, 40))
+    assert logged(again.history) == logged(first.history)

@@ -222,6 +222,14 @@ class UNetGenerator(nn.Module):
         return x
 
 
+def fixed_codes(generator: nn.Module, n: int, seed: int = 0) -> torch.Tensor | None:
+    """``n`` latent codes for ``generator`` (N x latent, z ~ N(0, I)) from a generator seeded with ``seed``, so
+    that translating and validating neither draw from nor depend on torch's global generator; None without
+    a latent code."""
+    latent = getattr(generator, "latent", 0)
+    return torch.randn(n, latent, generator=torch.Generator().manual_seed(seed)) if latent else None
+
+
 class GlobalDiscriminator(nn.Module):
     """Image-level discriminator: four stride-2 convs (widths ndf, 2ndf, 4ndf, 8ndf), flatten, one linear
     layer. Input ``N x in_channels x size x size``; output ``N x 1`` raw logits."""

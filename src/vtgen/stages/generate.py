@@ -26,7 +26,7 @@ from vtgen.core.conditioning import Conditioning
 from vtgen.core.gan import to_model_range, to_uint8
 from vtgen.io.images import atomic_output_dir, display_path, labelled_sheet, read_rgb8, stream_map, write_png
 from vtgen.io.tables import read_table
-from vtgen.core.models import UNetGenerator
+from vtgen.core.models import fixed_codes, UNetGenerator
 from vtgen.core.roi import image_tiles
 from vtgen.core.domain import DIRECTIONS
 from vtgen.io.tables import PAIR_COLUMNS, SPLIT_COLUMNS
@@ -49,8 +49,7 @@ def translate(generator: UNetGenerator, images: torch.Tensor, batch_size: int = 
     conditioning = conditioning or Conditioning()
     if conditioning.kind != "none" and (labels is None or len(labels) != len(images)):
         raise ValueError(f"a model conditioned on '{conditioning.kind}' needs one class per image")
-    latent = getattr(generator, "latent", 0)
-    codes = torch.randn(len(images), latent, generator=torch.Generator().manual_seed(seed)) if latent else None
+    codes = fixed_codes(generator, len(images), seed)
     out = []
     for i in range(0, len(images), batch_size):
         x = to_model_range(images[i:i + batch_size]).to(device)

@@ -40,7 +40,7 @@ from vtgen.core.device import resolve_device, resolve_precision
 from vtgen.core.domain import DIRECTIONS
 from vtgen.core.gan import random_positioning, to_model_range, to_uint8
 from vtgen.core.metrics import colour_ssim
-from vtgen.core.models import count_parameters, UNetGenerator
+from vtgen.core.models import count_parameters, fixed_codes, UNetGenerator
 from vtgen.core.translator import LOSS_NAMES, STATE_KEYS, training_step_flops, TranslatorTraining
 from vtgen.io.checkpoints import input_preparation, save_atomic, save_generator
 from vtgen.io.images import atomic_output_dir, read_tiles
@@ -228,6 +228,7 @@ def validation_l1(generator: UNetGenerator, validation: PairData, batch_size: in
     was_training = generator.training
     generator.eval()
     total = 0.0
+    codes = fixed_codes(generator, len(keep))
     with torch.no_grad():
         for start in range(0, len(keep), batch_size):
             index = keep[start:start + batch_size]
@@ -235,7 +236,8 @@ def validation_l1(generator: UNetGenerator, validation: PairData, batch_size: in
             y = to_model_range(validation.targets[index]).to(device)
             if conditioning is not None and conditioning.kind != "none":
                 x = conditioning.condition(x, conditioning.labels([validation.classes[i] for i in index.tolist()]))
-            total += float((generator(x).float() - y).abs().mean(dim=(1, 2, 3)).sum())
+            z = None if codes is None else codes[start:start + batch_size].to(device)
+            total += float((generator(x, z).float() - y).abs().mean(dim=(1, 2, 3)).sum())
     generator.train(was_training)
     return total / len(keep)
 
@@ -251,12 +253,13 @@ def validation_by_class(generator: UNetGenerator, validation: PairData, conditio
     device = next(generator.parameters()).device
     was_training = generator.training
     generator.eval()
-    outputs = []
+    outputs, codes = [], fixed_codes(generator, len(validation.inputs))
     for start in range(0, len(validation.inputs), batch_size):
         x = to_model_range(validation.inputs[start:start + batch_size]).to(device)
         if conditioning is not None and conditioning.kind != "none":
             x = conditioning.condition(x, conditioning.labels(validation.classes[start:start + batch_size]))
-        outputs.append(to_uint8(generator(x)).cpu())
+        z = None if codes is None else codes[start:start + batch_size].to(device)
+        outputs.append(to_uint8(generator(x, z)).cpu())
     generator.train(was_training)
     made = torch.cat(outputs)
     classes = np.array(validation.classes)
@@ -717,7 +720,7 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
             continue
         result = train_translator(data, dict(at[width], iterations=probe_steps), run, direction, scope, folder(width),
                                   progress=progress, validation=validation, conditioning=conditioning,
-                                  eval_every=probe_steps, label=f"width probe {width}")
+                                  eval_every=cap["eval_every"], label=f"width probe {width}")
         probes[width] = {"val_by_class": result.history[-1]["val_by_class"], "seconds": round(result.seconds, 2)}
         results[width] = result
     reference = probes[widths[-1]]["val_by_class"]
