@@ -96,12 +96,12 @@ def run_variant(params, pairs, splits, direction, overrides, seed, iterations, t
     train = load_pair_data(pairs, splits, direction, "all", size, root)
     objective, _ = resolve_objective(run["objective"], train)
     settings = objective_settings(settings, run, objective)
-    conditioning = build_conditioning(run["conditioning"][direction], pairs, "all", train)
+    conditioning = build_conditioning(run["conditioning"][direction], pairs, "all", train, params["classify"], seed)
     started = time.perf_counter()
     result = train_translator(train, settings, run, direction, "all", progress=False, conditioning=conditioning)
     seconds = time.perf_counter() - started
     inputs, input_classes = context["test_inputs"], context["test_input_classes"]
-    labels = conditioning.labels(list(input_classes)) if conditioning.kind != "none" else None
+    labels = conditioning.labels(list(input_classes)) if conditioning.needs_labels else None
     generated = translate(result.generator.eval(), inputs, conditioning=conditioning, labels=labels)
     return {"objective": objective, "seconds": seconds, "generated": generated,
             **goal_numbers(generated, input_classes, context)}

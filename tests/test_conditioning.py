@@ -154,3 +154,44 @@ def test_translate_files_needs_the_class_for_a_class_conditioned_model(tmp_path)
         translate_files(tmp_path / "model", [tmp_path / "in"], tmp_path / "out", as_tiles=True, class_name="c")
     written = translate_files(tmp_path / "model", [tmp_path / "in"], tmp_path / "out", as_tiles=True, class_name="b")
     assert [p.name for p in written] == ["x.png"]
+
+
+def test_inferred_conditioning_reads_the_class_from_the_input_and_survives_the_model_file(tmp_path):
+    """V2T-like pairs where the photo's colour tells the class: the inferred maps of a red input say red
+    (2p - 1 near 1 on its class), whatever label is passed; the model file rebuilds the same classifier, and
+    `vtgen translate` needs no --class for such a model."""
+    import pandas as pd
+    from PIL import Image
+
+    from vtgen.stages.generate import translate_files
+    from vtgen.stages.train import build_conditioning
+
+    touch_like = colour_blind_pairs()
+    data = PairData(touch_like.targets, touch_like.inputs, touch_like.classes, touch_like.aligned,
+                    touch_like.targets.clone(), touch_like.input_pool)  # inputs are the coloured images
+    pairs = pd.DataFrame({"split": "train", "class": data.classes})
+    classify = {"width": 0.25, "epochs": 4, "batch_size": 8, "lr": 0.001}
+    conditioning = build_conditioning("inferred", pairs, "all", data, classify, seed=0)
+    assert conditioning.classes == ("blue_cloth", "red_cloth") and conditioning.extra_channels == 2
+    assert not conditioning.needs_labels
+    x = data.inputs.float() / 127.5 - 1
+    maps = conditioning.condition(x, None)[:, 3:, 0, 0]
+    told_wrong = conditioning.condition(x, torch.zeros(len(x), dtype=torch.int64))[:, 3:, 0, 0]
+    assert torch.equal(maps, told_wrong)  # labels are not read
+    truth = torch.tensor([conditioning.classes.index(c) for c in data.classes])
+    assert (maps.argmax(dim=1) == truth).float().mean() == 1.0
+    assert torch.allclose(maps.sum(dim=1), torch.full((len(x),), 2.0 - len(conditioning.classes)), atol=1e-5)
+
+    generator = UNetGenerator(32, 4, 4, in_channels=3 + conditioning.extra_channels)
+    (tmp_path / "model").mkdir()
+    save_generator(tmp_path / "model" / "generator.pt", generator, dict(TINY_MODEL, ngf=4), "v2t", "all",
+                   conditioning=conditioning)
+    _, meta = load_translator(tmp_path / "model")
+    assert meta["conditioning"].kind == "inferred"
+    assert torch.equal(meta["conditioning"].condition(x, None), conditioning.condition(x, None))
+    (tmp_path / "in").mkdir()
+    Image.fromarray(np.full((32, 32, 3), (200, 40, 40), dtype=np.uint8)).save(tmp_path / "in" / "red.png")
+    written = translate_files(tmp_path / "model", [tmp_path / "in"], tmp_path / "out", as_tiles=True)
+    assert [p.name for p in written] == ["red.png"]
+    with pytest.raises(ValueError, match="needs the classify settings"):
+        build_conditioning("inferred", pairs, "all", data)

@@ -8,7 +8,11 @@ of input images and their class indices into the generator's input, the *conditi
 * ``class`` - the input plus one constant map per class, 1 on the image's class and 0 elsewhere
   (a one-hot map, as in conditional GANs, Mirza & Osindero 2014);
 * ``reference`` - the class maps plus one real image of the target modality of that class, the
-  appearance reference of VisGel (Li et al. 2019) and Gao et al. 2023.
+  appearance reference of VisGel (Li et al. 2019) and Gao et al. 2023;
+* ``inferred`` - the class maps of the class a classifier of the *input* modality reads from the input
+  itself: its softmax probabilities p, as 2p - 1. The generator is not told the class; on class-paired
+  data, where the class is all that links a photo to a touch, it is told what its input says, so its
+  output can be no more recognisable than its input is (issue 24, goal 3).
 
 The discriminator sees the same condition stacked with the real or generated image
 (:func:`vtgen.core.models.conditional_pair`), so both networks know what was asked for.
@@ -21,17 +25,22 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-CONDITIONINGS = ("none", "class", "reference")
+from vtgen.core.classifier import make_classifier
+
+CONDITIONINGS = ("none", "class", "reference", "inferred")
 
 
 @dataclass(frozen=True)
 class Conditioning:
-    """``kind`` (one of :data:`CONDITIONINGS`), the class names in index order, and for ``reference`` one
-    uint8 ``K x 3 x S x S`` reference image per class (same order)."""
+    """``kind`` (one of :data:`CONDITIONINGS`), the class names in index order, for ``reference`` one
+    uint8 ``K x 3 x S x S`` reference image per class (same order), and for ``inferred`` the input-modality
+    classifier (:func:`vtgen.core.classifier.make_classifier` with ``classifier_settings``, eval mode)."""
 
     kind: str = "none"
     classes: tuple[str, ...] = ()
     references: torch.Tensor | None = None
+    classifier: torch.nn.Module | None = None
+    classifier_settings: dict | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in CONDITIONINGS:
@@ -47,6 +56,13 @@ class Conditioning:
                 shape = None if refs is None else (tuple(refs.shape), refs.dtype)
                 raise ValueError(f"conditioning 'reference' needs a uint8 K x 3 x S x S tensor with K = "
                                  f"{len(self.classes)} classes, got {shape}")
+        if self.kind == "inferred" and (self.classifier is None or self.classifier_settings is None):
+            raise ValueError("conditioning 'inferred' needs the input-modality classifier and its settings")
+
+    @property
+    def needs_labels(self) -> bool:
+        """Whether :meth:`condition` needs each image's class (``inferred`` reads it from the image)."""
+        return self.kind in ("class", "reference")
 
     @property
     def extra_channels(self) -> int:
@@ -68,12 +84,16 @@ class Conditioning:
         """``x`` (N x 3 x S x S in [-1, 1]) with this conditioning's channels appended: N x (3 + extra) x S x S.
 
         Class maps are 1 (the image's class) or -1 (the others), in the images' range; a reference is
-        resized (area) to S when its side differs.
+        resized (area) to S when its side differs. ``inferred`` ignores ``labels`` (None allowed): its maps
+        are 2p - 1, p the classifier's softmax on ``x`` (back on the 0-255 scale, resized to its side).
         """
         if self.kind == "none":
             return x
         n, _, height, width = x.shape
-        onehot = F.one_hot(labels.to(x.device), len(self.classes)).to(x.dtype) * 2 - 1
+        if self.kind == "inferred":
+            onehot = self.probabilities(x).to(x.dtype) * 2 - 1
+        else:
+            onehot = F.one_hot(labels.to(x.device), len(self.classes)).to(x.dtype) * 2 - 1
         parts = [x, onehot[:, :, None, None].expand(n, len(self.classes), height, width)]
         if self.kind == "reference":
             refs = self.references.to(x.device)[labels.to(x.device)].float() / 127.5 - 1.0
@@ -82,16 +102,35 @@ class Conditioning:
             parts.append(refs.to(x.dtype))
         return torch.cat(parts, dim=1)
 
+    @torch.no_grad()
+    def probabilities(self, x: torch.Tensor) -> torch.Tensor:
+        """The ``inferred`` classifier's softmax (N x K) for images ``x`` in [-1, 1] (no gradient)."""
+        model = self.classifier.to(x.device).eval()
+        images = ((x[:, :3].float() + 1.0) * 127.5).round().clamp(0, 255)
+        side = self.classifier_settings["size"]
+        if images.shape[-1] != side:
+            images = F.interpolate(images, size=(side, side), mode="area").round()
+        return torch.softmax(model(images.to(torch.uint8)).float(), dim=1)
+
     def record(self) -> dict:
         """What a model file stores (tensors stay tensors)."""
-        return {"kind": self.kind, "classes": list(self.classes), "references": self.references}
+        classifier = None if self.classifier is None else {"settings": dict(self.classifier_settings),
+                                                            "state_dict": self.classifier.state_dict()}
+        return {"kind": self.kind, "classes": list(self.classes), "references": self.references,
+                "classifier": classifier}
 
     @classmethod
     def from_record(cls, record: dict | None) -> "Conditioning":
         """Inverse of :meth:`record`; None (model files from before conditioning existed) is ``none``."""
         if record is None:
             return cls()
-        return cls(record["kind"], tuple(record["classes"]), record.get("references"))
+        saved, model, settings = record.get("classifier"), None, None
+        if saved is not None:
+            settings = dict(saved["settings"])
+            model = make_classifier(len(record["classes"]), settings, 0)
+            model.load_state_dict(saved["state_dict"])
+            model.eval()
+        return cls(record["kind"], tuple(record["classes"]), record.get("references"), model, settings)
 
 
 def typical_images(images: torch.Tensor, classes: list[str], names: tuple[str, ...]) -> torch.Tensor:

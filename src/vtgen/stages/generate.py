@@ -47,14 +47,14 @@ def translate(generator: UNetGenerator, images: torch.Tensor, batch_size: int = 
     same call gives the same images; another seed, another draw)."""
     device = next(generator.parameters()).device
     conditioning = conditioning or Conditioning()
-    if conditioning.kind != "none" and (labels is None or len(labels) != len(images)):
+    if conditioning.needs_labels and (labels is None or len(labels) != len(images)):
         raise ValueError(f"a model conditioned on '{conditioning.kind}' needs one class per image")
     codes = fixed_codes(generator, len(images), seed)
     out = []
     for i in range(0, len(images), batch_size):
         x = to_model_range(images[i:i + batch_size]).to(device)
         if conditioning.kind != "none":
-            x = conditioning.condition(x, labels[i:i + batch_size])
+            x = conditioning.condition(x, None if labels is None else labels[i:i + batch_size])
         z = None if codes is None else codes[i:i + batch_size].to(device)
         out.append(to_uint8((generator(x) if z is None else generator(x, z))).cpu())
     return torch.cat(out) if out else images.clone()
@@ -386,10 +386,10 @@ def _open_translator(model: str | Path, device: str, direction: str | None, clas
     if direction and direction != meta["direction"]:
         raise ValueError(f"{meta['path']}: model translates {meta['direction']}, not {direction}")
     conditioning = meta["conditioning"]
-    if conditioning.kind != "none" and class_name is None:
+    if conditioning.needs_labels and class_name is None:
         raise ValueError(f"{meta['path']}: this model is conditioned on the class ({conditioning.kind}); name the "
                          f"class of the inputs with --class (one of {', '.join(conditioning.classes)})")
-    label = conditioning.labels([class_name])[0] if conditioning.kind != "none" else None
+    label = conditioning.labels([class_name])[0] if conditioning.needs_labels else None
     return generator, meta, label
 
 

@@ -35,6 +35,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
+from vtgen.core.classifier import train_classifier
 from vtgen.core.conditioning import Conditioning, typical_images
 from vtgen.core.device import resolve_device, resolve_precision
 from vtgen.core.domain import DIRECTIONS
@@ -778,14 +779,30 @@ def _finished_probe(folder: Path | None, settings: dict, run: dict, direction: s
                                      "seconds": round(saved["seconds"] * steps / saved["step"], 2)}
 
 
-def build_conditioning(kind: str, pairs: pd.DataFrame, scope: str, data: PairData) -> Conditioning:
+def build_conditioning(kind: str, pairs: pd.DataFrame, scope: str, data: PairData,
+                       classify: dict | None = None, seed: int = 0) -> Conditioning:
     """The ``translation.conditioning`` of one model: its classes are those of the scope's pairs (sorted);
-    a ``reference`` is the typical training target of each class (:func:`typical_images`)."""
+    a ``reference`` is the typical training target of each class (:func:`typical_images`); ``inferred``
+    trains the classify stage's classifier (``classify``: width, epochs, batch_size, lr; at the model's
+    side) on the training inputs of each class, seeded with ``seed``."""
     if kind == "none":
         return Conditioning()
     names = tuple(sorted(set(pairs_in(pairs, "train", scope)["class"])))
     references = typical_images(data.targets, data.classes, names) if kind == "reference" else None
-    return Conditioning(kind, names, references)
+    if kind != "inferred":
+        return Conditioning(kind, names, references)
+    if classify is None:
+        raise ValueError("conditioning 'inferred' needs the classify settings to train its input classifier")
+    if len(names) < 2:
+        raise ValueError(f"conditioning 'inferred' needs at least 2 classes to tell apart, the pairs have {list(names)}")
+    index = torch.cat([data.input_pool[name] for name in names])
+    labels = torch.cat([torch.full((len(data.input_pool[name]),), i, dtype=torch.int64) for i, name in enumerate(names)])
+    images = data.pool_images[index]
+    settings = {"size": int(images.shape[-1]), **{k: classify[k] for k in ("width", "epochs", "batch_size", "lr")}}
+    run = train_classifier(images, labels, images, labels, len(names), settings, seed)
+    print(f"conditioning inferred: input classifier trained on {len(images)} training inputs of {len(names)} "
+          f"classes ({settings['epochs']} epochs), training accuracy {run.test_accuracy[-1]:.3f}")
+    return Conditioning(kind, names, classifier=run.model.eval(), classifier_settings=settings)
 
 
 def _summary(result: TrainResult, data: PairData, validation: PairData | None, settings: dict, run: dict,
@@ -828,7 +845,7 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
     data = load_pair_data(pairs, splits, direction, scope, settings["size"])
     validation = (load_pair_data(pairs, splits, direction, scope, settings["size"], split="val")
                   if not pairs_in(pairs, "val", scope).empty else None)
-    conditioning = build_conditioning(run["conditioning"][direction], pairs, scope, data)
+    conditioning = build_conditioning(run["conditioning"][direction], pairs, scope, data, params["classify"], run["seed"])
     settings = check_training_fits(settings, len(data.targets), f"presets.{run['preset']}", f"train {direction}/{scope}",
                                    resolve_device(run["device"]).type)
     objective, objective_reason = resolve_objective(run["objective"], data)
