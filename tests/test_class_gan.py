@@ -15,7 +15,7 @@ SETTINGS = {"size": 32, "ngf": 8, "ndf": 8, "kernel": 4, "discriminator": "patch
             "batch_size": 4, "iterations": 4, "noise": False}
 CLASS_GAN = {"objective": "class_gan", "r1": 0.1, "diffaugment": True, "mode_seeking": 1.0, "mode_seeking_pool": 1,
              "statistics": 0.0, "class_guidance": 0.0, "skips": None, "d_lr_ratio": 1.0,
-             "latent": 0, "upsample": "transpose"}  # the params.yaml default
+             "latent": 8, "upsample": "transpose"}  # the params.yaml default
 
 
 def test_translation_moves_the_image_by_whole_pixels_and_fills_zeros():
@@ -245,7 +245,7 @@ def test_auto_picks_the_objective_from_the_pair_kind():
     assert resolve_objective("pix2pix", pair_data(fixed=False)) == ("pix2pix", "as set")
     translation = {"preset": "fast", "class_gan": {"r1": 0.1, "diffaugment": True, "mode_seeking": 1.0,
                                                    "mode_seeking_pool": 1, "statistics": 0.0, "class_guidance": 0.0, "skips": "all",
-                                                   "d_lr_ratio": 1.0, "latent": 0,
+                                                   "d_lr_ratio": 1.0, "latent": 8,
                                                    "upsample": "transpose"}}
     assert objective_settings(SETTINGS, translation, "pix2pix") is SETTINGS  # pix2pix: the preset, untouched
     assert objective_settings(SETTINGS, translation, "class_gan") == dict(SETTINGS, **CLASS_GAN)
@@ -346,8 +346,9 @@ def test_a_generator_with_fewer_skips_is_rebuilt_as_trained(tmp_path):
     loaded, _ = load_translator(tmp_path)
     assert loaded.skips == 1
     x = batch()[0]
+    z = torch.randn(len(x), loaded.latent)
     with torch.no_grad():
-        assert torch.equal(loaded(x), training.generator.eval()(x))
+        assert torch.equal(loaded(x, z), training.generator.eval()(x, z))
     everything = objective_settings(dict(SETTINGS), {"preset": "fast", "class_gan": dict(
         {k: v for k, v in CLASS_GAN.items() if k != "objective"}, skips="all")}, "class_gan")
     assert TranslatorTraining(everything, "cpu", num_classes=2).generator.skips == 4  # 32 px: depth 5
@@ -371,7 +372,7 @@ def test_latent_0_reproduces_the_step_without_a_code_bit_for_bit():
 
     without = {k: v for k, v in CLASS_GAN.items() if k != "latent"}
     assert all(torch.equal(a, b) for a, b in zip(stepped(dict(SETTINGS, **without)),
-                                                 stepped(dict(SETTINGS, **CLASS_GAN))))
+                                                 stepped(dict(SETTINGS, **dict(CLASS_GAN, latent=0)))))
 
 
 def test_the_latent_code_changes_the_output_and_a_seed_repeats_it():
