@@ -272,7 +272,7 @@ def test_spread_ratio_is_0_for_one_repeated_image_and_1_for_the_real_set_itself(
     data.targets = torch.randint(0, 256, (6, 3, 8, 8), dtype=torch.uint8, generator=torch.Generator().manual_seed(1))
 
     class Copy(torch.nn.Module):  # returns its input: as varied as the inputs
-        def forward(self, x):
+        def forward(self, x, z=None):
             return x + 0 * self.w
 
         def __init__(self):
@@ -280,7 +280,7 @@ def test_spread_ratio_is_0_for_one_repeated_image_and_1_for_the_real_set_itself(
             self.w = torch.nn.Parameter(torch.zeros(()))
 
     class Constant(Copy):  # one image whatever the input
-        def forward(self, x):
+        def forward(self, x, z=None):
             return torch.zeros_like(x) + 0 * self.w
 
     varied, collapsed = validation_by_class(Copy(), data), validation_by_class(Constant(), data)

@@ -56,7 +56,7 @@ def translate(generator: UNetGenerator, images: torch.Tensor, batch_size: int = 
         if conditioning.kind != "none":
             x = conditioning.condition(x, None if labels is None else labels[i:i + batch_size])
         z = None if codes is None else codes[i:i + batch_size].to(device)
-        out.append(to_uint8((generator(x) if z is None else generator(x, z))).cpu())
+        out.append(to_uint8(generator(x, z)).cpu())
     return torch.cat(out) if out else images.clone()
 
 

@@ -238,7 +238,7 @@ def validation_l1(generator: UNetGenerator, validation: PairData, batch_size: in
             if conditioning is not None and conditioning.kind != "none":
                 x = conditioning.condition(x, conditioning.labels([validation.classes[i] for i in index.tolist()]))
             z = None if codes is None else codes[start:start + batch_size].to(device)
-            total += float(((generator(x) if z is None else generator(x, z)).float() - y).abs().mean(dim=(1, 2, 3)).sum())
+            total += float((generator(x, z).float() - y).abs().mean(dim=(1, 2, 3)).sum())
     generator.train(was_training)
     return total / len(keep)
 
@@ -260,7 +260,7 @@ def validation_by_class(generator: UNetGenerator, validation: PairData, conditio
         if conditioning is not None and conditioning.kind != "none":
             x = conditioning.condition(x, conditioning.labels(validation.classes[start:start + batch_size]))
         z = None if codes is None else codes[start:start + batch_size].to(device)
-        outputs.append(to_uint8((generator(x) if z is None else generator(x, z))).cpu())
+        outputs.append(to_uint8(generator(x, z)).cpu())
     generator.train(was_training)
     made = torch.cat(outputs)
     classes = np.array(validation.classes)
