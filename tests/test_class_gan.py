@@ -7,14 +7,16 @@ import torch
 
 from vtgen.core.augment import augment_policy, colour, cutout, diff_augment, translation
 from vtgen.core.models import ProjectionDiscriminator
-from vtgen.core.translator import mode_seeking_loss, r1_penalty, statistics_loss, TranslatorTraining
-from vtgen.stages.train import _draw, objective_settings, PairData, resolve_objective
+from vtgen.core.classifier import make_classifier, predict
+from vtgen.core.translator import (mode_seeking_loss, r1_penalty, recognition_loss, statistics_loss,
+                                   TranslatorTraining)
+from vtgen.stages.train import _draw, build_guide, objective_settings, PairData, resolve_objective
 
 SETTINGS = {"size": 32, "ngf": 8, "ndf": 8, "kernel": 4, "discriminator": "patch", "patch_layers": 2,
             "gan_loss": "bce", "l1_weight": 100.0, "optimizer": "adam", "lr": 2e-4, "betas": [0.5, 0.999],
             "batch_size": 4, "iterations": 4, "noise": False}
 CLASS_GAN = {"objective": "class_gan", "r1": 0.1, "diffaugment": True, "mode_seeking": 1.0, "mode_seeking_pool": 1,
-             "statistics": 0.0, "class_guidance": 0.0, "skips": None, "d_lr_ratio": 1.0,
+             "statistics": 0.0, "class_guidance": 0.0, "semantic": 0.0, "skips": None, "d_lr_ratio": 1.0,
              "latent": 8, "upsample": "transpose"}  # the params.yaml default
 
 
@@ -244,7 +246,7 @@ def test_auto_picks_the_objective_from_the_pair_kind():
     assert resolve_objective("auto", pair_data(fixed=True))[0] == "pix2pix"
     assert resolve_objective("pix2pix", pair_data(fixed=False)) == ("pix2pix", "as set")
     translation = {"preset": "fast", "class_gan": {"r1": 0.1, "diffaugment": True, "mode_seeking": 1.0,
-                                                   "mode_seeking_pool": 1, "statistics": 0.0, "class_guidance": 0.0, "skips": "all",
+                                                   "mode_seeking_pool": 1, "statistics": 0.0, "class_guidance": 0.0, "semantic": 0.0, "skips": "all",
                                                    "d_lr_ratio": 1.0, "latent": 8,
                                                    "upsample": "transpose"}}
     assert objective_settings(SETTINGS, translation, "pix2pix") is SETTINGS  # pix2pix: the preset, untouched
@@ -433,3 +435,104 @@ def test_resize_upsampling_has_no_checkerboard_on_a_constant_map():
     assert UNetGenerator(32, 8, 4, upsample="resize")(torch.zeros(2, 3, 32, 32)).shape == (2, 3, 32, 32)
     with pytest.raises(ValueError, match="upsample must be"):
         UNetGenerator(32, 8, 4, upsample="bilinear")
+
+
+GUIDE = {"size": 32, "width": 0.25, "epochs": 8, "batch_size": 8, "lr": 1e-3}
+
+
+def test_recognition_loss_is_the_guides_cross_entropy_on_the_uint8_image():
+    torch.manual_seed(0)
+    guide = make_classifier(3, GUIDE, seed=1).eval()
+    pixels = torch.randint(0, 256, (5, 3, 32, 32), dtype=torch.uint8)
+    labels = torch.tensor([0, 1, 2, 0, 1])
+    images = (pixels.float() / 127.5 - 1.0).requires_grad_(True)  # the generator's range, exactly the same pixels
+    loss = recognition_loss(guide, images, labels)
+    expected = torch.nn.functional.cross_entropy(guide(pixels), labels)
+    assert float(loss.detach()) == pytest.approx(float(expected.detach()), rel=1e-5)
+    loss.backward()
+    assert images.grad is not None and images.grad.abs().sum() > 0  # G can be trained through it
+    big = torch.nn.functional.interpolate(images.detach(), scale_factor=2, mode="nearest")  # area-resized back
+    assert float(recognition_loss(guide, big, labels).detach()) == pytest.approx(float(expected.detach()), rel=1e-5)
+
+
+def test_semantic_weight_0_is_the_step_without_it_and_a_weight_needs_its_guide():
+    def stepped(**terms):
+        torch.manual_seed(0)
+        guide = make_classifier(2, GUIDE, seed=1)
+        training = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, **terms)), "cpu", num_classes=2, guide=guide)
+        training.step(*batch())
+        return weights(training.generator), weights(training.discriminator)
+
+    without = {k: v for k, v in CLASS_GAN.items() if k != "semantic"}
+    torch.manual_seed(0)
+    plain = TranslatorTraining(dict(SETTINGS, **without), "cpu", num_classes=2)
+    plain.step(*batch())
+    g0, d0 = stepped(semantic=0.0)
+    assert all(torch.equal(a, b) for a, b in zip(g0, weights(plain.generator)))
+    assert all(torch.equal(a, b) for a, b in zip(d0, weights(plain.discriminator)))
+    g1, d1 = stepped(semantic=1.0)
+    assert all(torch.equal(a, b) for a, b in zip(d1, d0))  # the term is G's only
+    assert any(not torch.equal(a, b) for a, b in zip(g1, g0))
+    with pytest.raises(ValueError, match="semantic.*guide"):
+        TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, semantic=1.0)), "cpu", num_classes=2)
+
+
+def test_the_semantic_term_makes_outputs_recognisable_to_its_guide_and_leaves_the_guide_alone():
+    """With D held still, five steps at weight 10 lower the guide's cross-entropy of G's outputs below five
+    steps at a vanishing weight; the guide's weights never change."""
+    guide = make_classifier(2, GUIDE, seed=1)
+    frozen = weights(guide)
+
+    def stepped(weight):
+        torch.manual_seed(0)
+        training = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, semantic=weight, mode_seeking=0.0, latent=0,
+                                                            diffaugment=False)),
+                                      "cpu", num_classes=2, guide=guide)
+        for group in training.opt_d.param_groups:
+            group["lr"] = 0.0
+        x, y, labels = batch()
+        for _ in range(5):
+            training.step(x, y, labels)
+        with torch.no_grad():
+            return float(recognition_loss(guide, training.generator(x), labels))
+
+    assert stepped(10.0) < stepped(1e-9)
+    assert all(torch.equal(a, b) for a, b in zip(weights(guide), frozen))
+
+
+def test_the_guide_learns_the_training_targets_classes_from_distinct_targets():
+    g = torch.Generator().manual_seed(0)
+    dark = torch.randint(0, 60, (6, 3, 32, 32), dtype=torch.uint8, generator=g)
+    bright = torch.randint(190, 256, (6, 3, 32, 32), dtype=torch.uint8, generator=g)
+    targets = torch.cat([dark, dark, bright])  # class pairs repeat a target: the dark ones twice
+    classes = ["dark"] * 12 + ["bright"] * 6
+    data = PairData(targets.clone(), targets, classes, torch.zeros(18, dtype=torch.bool), targets.clone())
+    settings = dict(SETTINGS, **dict(CLASS_GAN, semantic=1.0))
+    assert build_guide(dict(settings, semantic=0.0), data, GUIDE, seed=0) is None
+    assert build_guide(dict(SETTINGS), data, GUIDE, seed=0) is None  # pix2pix has no such term
+    guide = build_guide(settings, data, GUIDE, seed=0)
+    assert guide.num_classes == 2 and not guide.training
+    # index order = sorted class names, as the class_gan batches number them: bright 0, dark 1
+    assert predict(guide, torch.cat([dark, bright])).tolist() == [1] * 6 + [0] * 6
+    again = build_guide(settings, data, GUIDE, seed=0)
+    assert all(torch.equal(a, b) for a, b in zip(guide.state_dict().values(), again.state_dict().values()))
+
+
+def test_the_training_loop_trains_with_the_semantic_term_and_counts_the_guides_flops():
+    from vtgen.core.translator import training_step_flops
+    from vtgen.stages.train import train_translator
+
+    g = torch.Generator().manual_seed(1)
+    images = torch.randint(0, 256, (8, 3, 32, 32), dtype=torch.uint8, generator=g)
+    classes = ["a"] * 4 + ["b"] * 4
+    data = PairData(images.clone(), images.flip(0).clone(), classes, torch.zeros(8, dtype=torch.bool), images.clone(),
+                    {"a": torch.arange(4), "b": torch.arange(4, 8)})
+    settings = dict(SETTINGS, **dict(CLASS_GAN, semantic=1.0, latent=0), iterations=3)
+    guide = build_guide(settings, data, GUIDE, seed=0)
+    run = dict(device="cpu", precision="fp32", threads=1, checkpoint_every=10**6, resume=False, log_every=1, seed=0)
+    result = train_translator(data, settings, run, "v2t", "all", progress=False, guide=guide)
+    assert result.steps == 3 and all(torch.isfinite(p).all() for p in result.generator.parameters())
+    with pytest.raises(ValueError, match="semantic.*guide"):
+        train_translator(data, settings, run, "v2t", "all", progress=False)
+    plain = training_step_flops(dict(settings, semantic=0.0))
+    assert training_step_flops(settings, guide=guide) > plain  # the guide's forward and backward are counted

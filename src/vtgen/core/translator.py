@@ -32,6 +32,18 @@ OBJECTIVES = ("pix2pix", "class_gan")
 MODE_SEEKING_EPS = 1e-5  # floor of the real gap in the mode-seeking ratio
 
 
+def recognition_loss(guide: nn.Module, images: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """CE(guide(images), labels), averaged over the batch: the cross-entropy of a frozen classifier of the
+    target modality (:class:`vtgen.core.classifier.AlexNet`, eval mode) on ``images`` (N x 3 x S x S floats in
+    [-1, 1], the generator's range, area-resized to the guide's side), differentiable in ``images`` (the
+    semantic consistency term of CyCADA, Hoffman et al. 2018, eq. 4, with the known class as its target)."""
+    side = guide.size
+    if images.shape[-1] != side:
+        images = F.interpolate(images, size=(side, side), mode="area")
+    logits = guide.scaled_forward(images.contiguous(memory_format=torch.channels_last))
+    return F.cross_entropy(logits.float(), labels)
+
+
 def discriminator_features(discriminator: nn.Module, pair: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
     """``discriminator(pair)`` and the output of each of its LeakyReLU layers, in order: the
     intermediate features that feature matching compares (pix2pixHD, Wang et al. 2018)."""
@@ -58,11 +70,13 @@ class TranslatorTraining:
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
     ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``statistics``, ``class_guidance``, ``skips``,
-    ``latent``, ``upsample`` (see :meth:`class_step`) and ``d_lr_ratio`` (D's learning rate over G's), and needs ``num_classes``.
+    ``latent``, ``upsample``, ``semantic`` (see :meth:`class_step`) and ``d_lr_ratio`` (D's learning rate over
+    G's), and needs ``num_classes``; ``semantic`` > 0 needs ``guide``, a classifier of the target modality over the
+    same class indices (frozen here: eval mode, no gradients for its weights).
     """
 
     def __init__(self, settings: dict, device: torch.device | str = "cpu", precision: str = "fp32",
-                 input_channels: int = 3, num_classes: int = 0) -> None:
+                 input_channels: int = 3, num_classes: int = 0, guide: nn.Module | None = None) -> None:
         if precision not in PRECISIONS:
             raise ValueError(f"unknown precision '{precision}' (allowed: {', '.join(PRECISIONS)})")
         self.objective = settings.get("objective", "pix2pix")
@@ -81,6 +95,11 @@ class TranslatorTraining:
         else:
             self.discriminator = build_discriminator(settings["discriminator"], size, settings["ndf"], kernel,
                                                      settings["patch_layers"], input_channels + 3).to(self.device).train()
+        self.guide = None
+        if self.objective == "class_gan" and settings.get("semantic", 0.0):
+            if guide is None:
+                raise ValueError("class_gan.semantic > 0 needs a classifier of the target modality (the guide)")
+            self.guide = guide.to(self.device).eval().requires_grad_(False)
         # class_gan's d_lr_ratio: D's learning rate over G's (two time-scale update rule, Heusel et al. 2017)
         d_ratio = settings.get("d_lr_ratio", 1.0) if self.objective == "class_gan" else 1.0
         self.opt_g, self.opt_d = (make_optimizer(net.parameters(), settings["optimizer"], settings["lr"] * ratio,
@@ -183,6 +202,10 @@ class TranslatorTraining:
         not told the class must read it from its input.
         With ``latent`` k > 0 the generator draws its own code z ~ N(0, I_k) per row, so the two rows of a
         pair differ in input and code, and the mode-seeking term keeps the code from being ignored.
+        With ``semantic`` w > 0, G += w·:func:`recognition_loss` (guide, A(G(x)), c): a frozen real-only classifier
+        of the target modality must recognise each augmented output as its input's class (the guide is trained apart
+        from any classifier that scores the outputs). Measured: it buys recognition with pixel-scale stripes that
+        fool classifiers of its kind (benchmarks/README.md, sixth round), so it is off by default.
         ``upsample`` 'resize' builds G's decoder from resize convolutions (no checkerboard without a pixel loss to hide it).
         ``loss_g_l1`` is |G(x) − y| against the random partner: logged, never trained on.
         """
@@ -218,6 +241,10 @@ class TranslatorTraining:
             statistics = cfg.get("statistics", 0.0)
             if statistics:
                 loss_g = loss_g + statistics * statistics_loss(fake.float(), y)
+            semantic = cfg.get("semantic", 0.0)
+            if semantic:
+                with self._autocast():
+                    loss_g = loss_g + semantic * recognition_loss(self.guide, augment(fake), labels)
             self.opt_g.zero_grad(set_to_none=True)
             loss_g.backward()
             self.opt_g.step()
@@ -285,15 +312,19 @@ def mode_seeking_loss(outputs: torch.Tensor, targets: torch.Tensor, pool: int = 
     return torch.relu(1.0 - out_gap / real_gap.clamp_min(MODE_SEEKING_EPS))
 
 
-def training_step_flops(settings: dict, input_channels: int = 3, precision: str = "fp32") -> int:
-    """Floating-point operations of one :meth:`TranslatorTraining.step` (forward and backward of both networks)
-    at ``settings``' size, widths and batch, counted by ``torch.utils.flop_counter.FlopCounterMode`` on the CPU
-    (matmuls and convolutions, 2 per multiply-add). Runs one step on random data; the global RNG is restored."""
+def training_step_flops(settings: dict, input_channels: int = 3, precision: str = "fp32",
+                        guide: nn.Module | None = None) -> int:
+    """Floating-point operations of one :meth:`TranslatorTraining.step` (forward and backward of both networks,
+    and of ``guide`` when ``semantic`` needs it) at ``settings``' size, widths and batch, counted by
+    ``torch.utils.flop_counter.FlopCounterMode`` on the CPU (matmuls and convolutions, 2 per multiply-add). Runs
+    one step on random data; the global RNG is restored."""
     from torch.utils.flop_counter import FlopCounterMode
 
     rng = torch.get_rng_state()
     try:
-        training = TranslatorTraining(settings, "cpu", precision, input_channels, num_classes=2)
+        classes = guide.num_classes if guide is not None else 2
+        training = TranslatorTraining(settings, "cpu", precision, input_channels, classes,
+                                      None if guide is None else copy.deepcopy(guide))
         size, batch = settings["size"], settings["batch_size"]
         x, y = torch.rand(batch, input_channels, size, size) * 2 - 1, torch.rand(batch, 3, size, size) * 2 - 1
         with FlopCounterMode(display=False) as counter:

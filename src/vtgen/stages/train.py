@@ -57,6 +57,7 @@ LOSS_GROWTH_LIMIT = 1e3  # a loss window mean at most 1e3 x the median of the ea
 LOSS_FLOOR = 100.0  # ... or this, whichever is larger (BCE of 100 means logits of about 100)
 VAL_WORSE_FACTOR = 1.5  # final validation L1 at most 1.5 x the untrained generator's ...
 VAL_WORSE_MARGIN = 0.25  # ... or that plus 0.25 on [-1, 1], whichever is larger; checked only after
+GUIDE_SEED_OFFSET = 7919  # class_gan.semantic's classifier seed = translation.seed + this (not a classify.seeds entry)
 MIN_VAL_CHECK_STEPS = 22  # steps, when BatchNorm's running statistics (momentum 0.1) are >= 90% from training
 CHECKPOINT_FIELDS = ("fingerprint", "step", "history", "seconds", "baseline", *STATE_KEYS, "sampler_rng", "torch_rng")
 CHANGED = {"params": "the training parameters (preset, seed, precision)", "data": "the training pairs",
@@ -346,6 +347,7 @@ class Job:
     eval_every: int | None = None  # steps between per-class validations (capacity auto), else None
     stop: object = None  # callable(history) -> bool, checked after each per-class validation
     class_names: tuple[str, ...] = ()  # the class_gan objective's class index (sorted training classes)
+    guide: torch.nn.Module | None = None  # class_gan.semantic's target-modality classifier (build_guide)
 
     @property
     def class_gan(self) -> bool:
@@ -450,7 +452,7 @@ def _fresh(job: Job) -> tuple[TranslatorTraining, torch.Generator]:
     torch.manual_seed(job.run["seed"])
     sampler = torch.Generator().manual_seed(job.run["seed"])
     return TranslatorTraining(job.settings, job.device, job.run["precision"],
-                              3 + job.conditioning.extra_channels, len(job.class_names)), sampler
+                              3 + job.conditioning.extra_channels, len(job.class_names), job.guide), sampler
 
 
 def _baseline(training: TranslatorTraining, validation: PairData | None, conditioning: Conditioning) -> dict:
@@ -614,7 +616,8 @@ def _end_window(window: list[torch.Tensor], training: TranslatorTraining, sample
 def train_translator(data: PairData, settings: dict, run: dict, direction: str, scope: str,
                      checkpoint_dir: Path | None = None, on_log=None, progress: bool = True,
                      validation: PairData | None = None, conditioning: Conditioning | None = None,
-                     eval_every: int | None = None, stop=None, label: str | None = None) -> TrainResult:
+                     eval_every: int | None = None, stop=None, label: str | None = None,
+                     guide: torch.nn.Module | None = None) -> TrainResult:
     """Train one conditional GAN on ``data`` for ``settings['iterations']`` steps of :class:`TranslatorTraining`.
 
     ``settings`` is a presets block (its keys plus batch_size, iterations, noise); ``run`` holds device,
@@ -623,6 +626,7 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
     L1 error on the aligned pairs of ``validation``. ``conditioning`` (default none) adds its channels to
     every generator input. With ``eval_every``, every that many steps the row also holds ``val_by_class``
     (:func:`validation_by_class`) and training ends early once ``stop(history)`` is true (early stopping).
+    ``guide`` is the classifier ``class_gan.semantic`` needs (:func:`build_guide`).
     A non-finite or out-of-range loss or weight raises
     TrainingDiverged naming the step, the quantity and the last good checkpoint.
     """
@@ -634,7 +638,7 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
     job = Job(f"{direction}/{scope}{f' ({label})' if label else ''}", settings, run, device,
               Path(checkpoint_dir) / CHECKPOINT_NAME if checkpoint_dir else None,
               checkpoint_keys(settings, run, direction, scope, data, conditioning), validation,
-              conditioning or Conditioning(), eval_every, stop, tuple(sorted(set(data.classes))))
+              conditioning or Conditioning(), eval_every, stop, tuple(sorted(set(data.classes))), guide)
     training, sampler, state = _start(job)
     for row in state.history:  # a resumed run logs the rows it inherits again, so the log is whole
         if on_log:
@@ -690,7 +694,8 @@ def _live_logger(folder: Path):
 
 def train_capacity_auto(data: PairData, validation: PairData, settings: dict, run: dict, direction: str, scope: str,
                         checkpoint_dir: Path | None = None, on_log=None, progress: bool = True,
-                        conditioning: Conditioning | None = None) -> tuple[TrainResult, dict, dict]:
+                        conditioning: Conditioning | None = None,
+                        guide: torch.nn.Module | None = None) -> tuple[TrainResult, dict, dict]:
     """``translation.capacity: auto``: the smallest width and fewest iterations that reach the largest width's
     validation quality, per class, for one model.
 
@@ -721,7 +726,7 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
             continue
         result = train_translator(data, dict(at[width], iterations=probe_steps), run, direction, scope, folder(width),
                                   progress=progress, validation=validation, conditioning=conditioning,
-                                  eval_every=cap["eval_every"], label=f"width probe {width}")
+                                  eval_every=cap["eval_every"], label=f"width probe {width}", guide=guide)
         probes[width] = {"val_by_class": result.history[-1]["val_by_class"], "seconds": round(result.seconds, 2)}
         results[width] = result
     reference = probes[widths[-1]]["val_by_class"]
@@ -732,11 +737,11 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
                              data, at[chosen], dict(run, resume=True), direction, scope, folder(chosen),
                              on_log=on_log, progress=progress, validation=validation, conditioning=conditioning,
                              eval_every=cap["eval_every"], stop=lambda history: all_settled(history, tolerance, patience),
-                             label=f"width {chosen}, early stopping")
+                             label=f"width {chosen}, early stopping", guide=guide)
     if chosen in results and final is not results[chosen] and final.resumed_from == probe_steps:
         final.resumed_from = results[chosen].resumed_from  # continuing this call's own probe is not a resume
     settled = settled_classes(final.history, tolerance, patience)
-    flops = {w: training_step_flops(at[w], 3 + extra) for w in widths}
+    flops = {w: training_step_flops(at[w], 3 + extra, guide=guide) for w in widths}
     actual = sum(probe_steps * flops[w] for w in widths if w != chosen) + final.steps * flops[chosen]
     fixed = settings["iterations"] * flops[widths[-1]]
     seconds = sum(p["seconds"] for w, p in probes.items() if w != chosen) + final.seconds
@@ -805,6 +810,31 @@ def build_conditioning(kind: str, pairs: pd.DataFrame, scope: str, data: PairDat
     return Conditioning(kind, names, classifier=run.model.eval(), classifier_settings=settings)
 
 
+def build_guide(settings: dict, data: PairData, classify: dict, seed: int) -> torch.nn.Module | None:
+    """The target-modality classifier of ``class_gan.semantic`` (None when that weight is 0 or the objective is not
+    class_gan): the classify stage's network (``classify``: size, width, epochs, batch_size, lr) trained on the
+    distinct training targets of each class (index = sorted class names, as the class_gan batches), seeded
+    with ``seed`` + :data:`GUIDE_SEED_OFFSET`, so it is not any of the classifiers that score the outputs."""
+    if settings.get("objective") != "class_gan" or not settings.get("semantic", 0.0):
+        return None
+    names = sorted(set(data.classes))
+    if len(names) < 2:
+        raise ValueError(f"class_gan.semantic needs at least 2 classes to tell apart, the pairs have {names}")
+    flat = data.targets.reshape(len(data.targets), -1)
+    _, first = np.unique(flat.numpy(), axis=0, return_index=True)  # class pairs repeat a target; keep one of each
+    rows = torch.from_numpy(np.sort(first))
+    images = data.targets[rows]
+    position = {name: i for i, name in enumerate(names)}
+    labels = torch.tensor([position[data.classes[int(i)]] for i in rows], dtype=torch.int64)
+    cfg = {"size": int(classify["size"]), **{k: classify[k] for k in ("width", "epochs", "batch_size", "lr")}}
+    if images.shape[-1] != cfg["size"]:
+        images = F.interpolate(images.float(), size=(cfg["size"],) * 2, mode="area").round().to(torch.uint8)
+    run = train_classifier(images, labels, images, labels, len(names), cfg, seed + GUIDE_SEED_OFFSET)
+    print(f"class_gan.semantic: target classifier trained on {len(images)} training targets of {len(names)} classes "
+          f"({cfg['epochs']} epochs), training accuracy {run.test_accuracy[-1]:.3f}")
+    return run.model.eval()
+
+
 def _summary(result: TrainResult, data: PairData, validation: PairData | None, settings: dict, run: dict,
              direction: str, scope: str, conditioning: Conditioning) -> dict:
     """What ``train.json`` records about one training run."""
@@ -850,6 +880,7 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
                                    resolve_device(run["device"]).type)
     objective, objective_reason = resolve_objective(run["objective"], data)
     settings = objective_settings(settings, run, objective)
+    guide = build_guide(settings, data, params["classify"], run["seed"])
     print(f"train {direction}/{scope}: {len(data.targets)} training pairs ({int(data.aligned.sum())} aligned), "
           f"preset '{run['preset']}' at {settings['size']} px, {settings['iterations']} iterations of batch "
           f"{settings['batch_size']}, precision {run['precision']}, conditioning {conditioning.kind}, "
@@ -859,10 +890,11 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
         checkpoints = Path(checkpoint_root) / direction / scope
         if run["capacity"]["mode"] == "auto" and validation is not None:
             result, settings, capacity = train_capacity_auto(data, validation, settings, run, direction, scope,
-                                                             checkpoints, log, progress, conditioning)
+                                                             checkpoints, log, progress, conditioning, guide)
         else:
             result = train_translator(data, settings, run, direction, scope, checkpoints, on_log=log,
-                                      progress=progress, validation=validation, conditioning=conditioning)
+                                      progress=progress, validation=validation, conditioning=conditioning,
+                                      guide=guide)
             capacity = {"mode": "fixed", "reason": "as set" if run["capacity"]["mode"] == "fixed" else
                         "capacity auto needs validation pairs and this scope has none; the preset was used"}
         live.end()
