@@ -475,14 +475,34 @@ def test_grey_ssim_runs_in_the_kernel_and_matches_skimage(rng):
 
 def test_every_ssim_runs_in_the_kernel(monkeypatch, rng):
     kernel, calls = metrics._ssim_band_sums, []
+    shared = metrics._ssim_band_sums_shared
     monkeypatch.setattr(metrics, "_ssim_band_sums", lambda x, *rest: calls.append(x.dtype) or kernel(x, *rest))
+    monkeypatch.setattr(metrics, "_ssim_band_sums_shared",
+                        lambda x, *rest: calls.append(("shared", x.dtype)) or shared(x, *rest))
     x = rng.integers(0, 256, (2, 20, 20, 3), dtype=np.uint8)
     colour_ssim(x, x)
     colour_ssim(x / 255.0, x / 255.0, data_range=1.0)
     grey_ssim(x, x)
     pairwise_colour_ssim(x, x)
     colour_ssim(torch.from_numpy(x), torch.from_numpy(x))
-    assert calls == [np.uint8, np.float64, np.float64, np.uint8, np.uint8]
+    assert calls == [np.uint8, np.float64, np.float64, ("shared", np.uint8), np.uint8]
+
+
+def test_set_to_set_kernel_equals_the_paired_kernel_bit_for_bit(rng, monkeypatch):
+    """The set-to-set path (each image's filtered mean computed once) gives the bits of the paired kernel
+    on every pair: uint8 and float64, one and three channels, two row bands with a partial row block,
+    blocks of the filtered means smaller than the sets, a set against itself."""
+    monkeypatch.setattr(metrics, "FILTERED_BYTES", 3 * 8 * 3 * 67 * 13)  # blocks of 3 images
+    for shape in ((7, 77, 23, 3), (5, 30, 41, 1)):
+        a = rng.integers(0, 256, shape, dtype=np.uint8)
+        b = np.concatenate([noisy(rng, a[:3], 30), rng.integers(0, 256, (2, *shape[1:]), dtype=np.uint8), a[:1]])
+        for x, y, data_range in ((a, b, 255.0), (a / 7.0, b / 7.0, 255 / 7.0)):
+            first, second = np.repeat(np.arange(len(x)), len(y)), np.tile(np.arange(len(y)), len(x))
+            paired = metrics._kernel_ssim(*metrics._kernel_arrays(x[first], y[second]), np.arange(len(first)),
+                                          np.arange(len(first)), data_range).reshape(len(x), len(y))
+            for batch_size in (1, 5, 256):
+                np.testing.assert_array_equal(pairwise_colour_ssim(x, y, data_range, batch_size), paired)
+        np.testing.assert_array_equal(np.diag(pairwise_colour_ssim(a, a)), 1.0)
 
 
 def test_kernel_compiles_without_a_writable_cache():

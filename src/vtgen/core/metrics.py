@@ -18,8 +18,10 @@ separable "valid" convolution with no padding. Scores agree with scikit-image to
 Images smaller than the window (11 px) are refused.
 
 There is one SSIM implementation: a fused float64 numba kernel (``_ssim_band_sums``) on the
-CPU, compiled on first use and cached on disk where a cache directory is writable; Colour-SSIM,
-grey SSIM (the SSIM of the luma image) and set-to-set SSIM all run in it. numba's thread
+CPU, compiled on first use and cached on disk where a cache directory is writable; Colour-SSIM
+and grey SSIM (the SSIM of the luma image) run in it. Set-to-set SSIM runs in its twin for
+recurring images (``_ssim_band_sums_shared``: each image's filtered mean computed once, the same
+arithmetic in the same order, so the same bits, tested). numba's thread
 setting is left alone, and torch's thread count is restored after each call (numba's OpenMP
 layer changes it). There is no multi-scale SSIM (MS-SSIM): it needs images of at least 161 px
 (the window at the fifth scale), larger than the pipeline's tiles.
@@ -255,12 +257,126 @@ def _ssim_band_sums(x, y, first, second, x_offsets, y_offsets, c1, c2):
     return sums
 
 
+@_jit(parallel=True)
+def _filtered_means(planar, offsets):
+    """E[x'] of ``_ssim_band_sums`` for each image alone: float64 (N, C, H - 10, W - 10), the 11 x 11
+    Gaussian-filtered centred channel x' = x - offsets[n, c] of planar (N, C, H, W) images, with the
+    kernel's arithmetic (the same vertical, then horizontal taps), so each value equals the kernel's
+    ``mean_x`` bit for bit."""
+    n, channels, height, width = planar.shape
+    out_h, out_w = height - 2 * RADIUS, width - 2 * RADIUS
+    out = np.empty((n, channels, out_h, out_w))
+    for task in numba.prange(n * channels):
+        i, c = task // channels, task % channels
+        offset = offsets[i, c]
+        centred = np.empty((height, width))
+        for r in range(height):
+            for j in range(width):
+                centred[r, j] = np.float64(planar[i, c, r, j]) - offset
+        vertical = np.empty((1, 1, width))
+        for r in range(out_h):
+            for j in range(width):
+                vertical[0, 0, j] = _taps(centred[r, j], centred[r + 1, j], centred[r + 2, j], centred[r + 3, j],
+                                          centred[r + 4, j], centred[r + 5, j], centred[r + 6, j], centred[r + 7, j],
+                                          centred[r + 8, j], centred[r + 9, j], centred[r + 10, j])
+            for j in range(out_w):
+                out[i, c, r, j] = _row_taps(vertical, 0, 0, j)
+    return out
+
+
+@_jit(parallel=True)
+def _ssim_band_sums_shared(x, y, first, second, x_offsets, y_offsets, x_means, y_means, c1, c2):
+    """``_ssim_band_sums`` for pairs whose images recur (a set-to-set matrix), equal to it bit for bit.
+
+    x (N, C, H, W) and y (M, C, H, W): planar C-contiguous copies of the kernel's images (channels
+    first, so a row of one channel is contiguous and its loads vectorise); x_offsets, y_offsets:
+    their ``_channel_means``; x_means, y_means: their ``_filtered_means`` (each image's E[x'],
+    computed once instead of once per pair). A task filters only the two moments that depend on the
+    pair, x'^2 + y'^2 and x'y'; every operation that remains is the one of ``_ssim_band_sums``, in the
+    same order (same bands, row blocks, taps and sums), so the sums are the same bits: 2x less time
+    per pair (benchmarks/README.md, score stage, fourth round)."""
+    _, channels, height, width = x.shape
+    out_h, out_w = height - 2 * RADIUS, width - 2 * RADIUS
+    bands = (out_h + BAND_ROWS - 1) // BAND_ROWS
+    sums = np.empty((first.shape[0], channels, bands))
+    for task in numba.prange(first.shape[0] * channels * bands):
+        p, c, band = task // (channels * bands), (task // bands) % channels, task % bands
+        i, k = first[p], second[p]
+        top = band * BAND_ROWS
+        rows = min(BAND_ROWS, out_h - top)
+        moments = np.empty((2, rows + 2 * RADIUS + ROW_BLOCK - 1, width))
+        moments[:, rows + 2 * RADIUS:] = 0.0
+        vertical = np.empty((ROW_BLOCK, 2, width))
+        column_sums = np.zeros(out_w)
+        x_o = x_offsets[i, c]
+        y_o = y_offsets[k, c]
+        filled = 0
+        for o in range(0, rows, ROW_BLOCK):
+            for r in range(filled, min(o + ROW_BLOCK + 2 * RADIUS, rows + 2 * RADIUS)):
+                for j in range(width):
+                    a = np.float64(x[i, c, top + r, j]) - x_o
+                    b = np.float64(y[k, c, top + r, j]) - y_o
+                    moments[0, r, j] = a * a + b * b
+                    moments[1, r, j] = a * b
+                filled = r + 1
+            for m in range(2):
+                for j in range(width):
+                    v0 = moments[m, o, j]
+                    v1 = moments[m, o + 1, j]
+                    v2 = moments[m, o + 2, j]
+                    v3 = moments[m, o + 3, j]
+                    v4 = moments[m, o + 4, j]
+                    v5 = moments[m, o + 5, j]
+                    v6 = moments[m, o + 6, j]
+                    v7 = moments[m, o + 7, j]
+                    v8 = moments[m, o + 8, j]
+                    v9 = moments[m, o + 9, j]
+                    v10 = moments[m, o + 10, j]
+                    v11 = moments[m, o + 11, j]
+                    v12 = moments[m, o + 12, j]
+                    v13 = moments[m, o + 13, j]
+                    vertical[0, m, j] = _taps(v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10)
+                    vertical[1, m, j] = _taps(v1, v2, v3, v4, v5, v6, v7, v8, v9, v10, v11)
+                    vertical[2, m, j] = _taps(v2, v3, v4, v5, v6, v7, v8, v9, v10, v11, v12)
+                    vertical[3, m, j] = _taps(v3, v4, v5, v6, v7, v8, v9, v10, v11, v12, v13)
+            for row in range(min(ROW_BLOCK, rows - o)):
+                out_row = top + o + row
+                for j in range(out_w):
+                    mean_x = x_means[i, c, out_row, j]
+                    mean_y = y_means[k, c, out_row, j]
+                    second_sum = _row_taps(vertical, row, 0, j)
+                    cross = _row_taps(vertical, row, 1, j)
+                    mu_x = mean_x + x_o
+                    mu_y = mean_y + y_o
+                    luminance_num = mu_x * mu_y * 2.0 + c1
+                    luminance_den = mu_x * mu_x + mu_y * mu_y + c1
+                    contrast_num = (cross - mean_x * mean_y) * 2.0 + c2
+                    contrast_den = (second_sum - (mean_x * mean_x + mean_y * mean_y)) + c2
+                    column_sums[j] += (luminance_num * contrast_num) / (luminance_den * contrast_den)
+        total = 0.0
+        for j in range(out_w):
+            total += column_sums[j]
+        sums[p, c, band] = total
+    return sums
+
 
 def _kernel_arrays(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(n, H, W, C) arrays as C-contiguous native arrays of one dtype the kernel is compiled
     for: uint8 when both are, else float64 (exact for every other input dtype)."""
     dtype = np.uint8 if x.dtype == y.dtype == np.uint8 else np.float64
     return np.ascontiguousarray(x, dtype=dtype), np.ascontiguousarray(y, dtype=dtype)
+
+
+def _keep_torch_threads(kernel, *args):
+    """``kernel(*args)``, with torch's thread count as it was before: numba's OpenMP threading layer sets
+    the process-wide OpenMP thread count, which torch's CPU kernels share (a training job set to 1
+    thread ran on 2 after its first validation SSIM, with other rounding)."""
+    torch = sys.modules.get("torch")
+    threads = torch.get_num_threads() if torch is not None else None
+    result = kernel(*args)
+    if threads is not None and torch.get_num_threads() != threads:
+        torch.set_num_threads(threads)
+    return result
 
 
 def _kernel_ssim(x: np.ndarray, y: np.ndarray, first: np.ndarray, second: np.ndarray, data_range: float,
@@ -272,16 +388,52 @@ def _kernel_ssim(x: np.ndarray, y: np.ndarray, first: np.ndarray, second: np.nda
         return np.empty(0)
     x_means = _channel_means(x) if x_means is None else x_means
     y_means = _channel_means(y) if y_means is None else y_means
-    # numba's OpenMP threading layer sets the process-wide OpenMP thread count, which torch's CPU kernels
-    # share: a training job set to 1 thread ran on 2 after its first validation SSIM, with other rounding
-    torch = sys.modules.get("torch")
-    threads = torch.get_num_threads() if torch is not None else None
-    sums = _ssim_band_sums(x, y, first.astype(np.int64), second.astype(np.int64), x_means, y_means,
-                           (K1 * data_range) ** 2, (K2 * data_range) ** 2)
-    if threads is not None and torch.get_num_threads() != threads:
-        torch.set_num_threads(threads)
-    positions = (x.shape[1] - 2 * RADIUS) * (x.shape[2] - 2 * RADIUS)
+    sums = _keep_torch_threads(_ssim_band_sums, x, y, first.astype(np.int64), second.astype(np.int64), x_means,
+                               y_means, (K1 * data_range) ** 2, (K2 * data_range) ** 2)
+    return _scores_from_sums(sums, x.shape[1], x.shape[2])
+
+
+def _scores_from_sums(sums: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(P,) SSIM from the kernels' (P, C, bands) sums of the map: mean over positions, then over channels."""
+    positions = (height - 2 * RADIUS) * (width - 2 * RADIUS)
     return (sums.sum(axis=2) / positions).mean(axis=1)
+
+
+FILTERED_BYTES = 1 << 27  # filtered means held at once per set by _pairwise_ssim (128 MiB: 1,900 tiles of 64 px)
+
+
+def _pairwise_ssim(xs: np.ndarray, ys: np.ndarray, data_range: float, batch_size: int) -> np.ndarray:
+    """(N, M) Colour-SSIM of every pair of kernel arrays xs (N, H, W, C) and ys (M, H, W, C), through
+    ``_ssim_band_sums_shared``: each image's channel means and filtered means computed once (per block
+    of at most ``FILTERED_BYTES`` of them), then ``batch_size`` pairs per kernel call, row by row."""
+    n, height, width, channels = xs.shape
+    m = ys.shape[0]
+    matrix = np.empty((n, m))
+    if n * m == 0:
+        return matrix
+    constants = ((K1 * data_range) ** 2, (K2 * data_range) ** 2)
+    per_image = 8 * channels * (height - 2 * RADIUS) * (width - 2 * RADIUS)
+    block = max(1, FILTERED_BYTES // per_image)
+
+    def prepared(images):
+        planar = np.ascontiguousarray(images.transpose(0, 3, 1, 2))
+        offsets = _channel_means(np.ascontiguousarray(images))
+        return planar, offsets, _keep_torch_threads(_filtered_means, planar, offsets)
+
+    for y_start in range(0, m, block):
+        y_planar, y_offsets, y_filtered = prepared(ys[y_start:y_start + block])
+        width_m = len(y_planar)
+        for x_start in range(0, n, block):
+            x_planar, x_offsets, x_filtered = prepared(xs[x_start:x_start + block])
+            count = len(x_planar) * width_m
+            scores = np.empty(count)
+            for start in range(0, count, int(batch_size)):
+                pairs = np.arange(start, min(start + int(batch_size), count))
+                sums = _keep_torch_threads(_ssim_band_sums_shared, x_planar, y_planar, pairs // width_m,
+                                           pairs % width_m, x_offsets, y_offsets, x_filtered, y_filtered, *constants)
+                scores[pairs] = _scores_from_sums(sums, height, width)
+            matrix[x_start:x_start + len(x_planar), y_start:y_start + width_m] = scores.reshape(len(x_planar), width_m)
+    return matrix
 
 
 def _paired_ssim(x: np.ndarray, y: np.ndarray, data_range: float) -> np.ndarray:
@@ -364,10 +516,10 @@ def psnr(a, b, data_range: float | None = None) -> np.ndarray:
 def pairwise_colour_ssim(a, b, data_range: float | None = None, batch_size: int = 256) -> np.ndarray:
     """(N, M) matrix of :func:`colour_ssim` between every a[i] and every b[j] (set-to-set SSIM).
 
-    Every pair runs through the kernel of :func:`colour_ssim`, which reuses each image's channel
-    means and recomputes its filtered statistics per pair (that costs less than storing and
-    reading them back), so entries equal ``colour_ssim(a[i], b[j])`` bit for bit; exactly 1 where
-    a[i] == b[j].
+    Each image's channel means and filtered means are computed once and every pair filters only the
+    two moments it owns (``_ssim_band_sums_shared``), with the arithmetic of :func:`colour_ssim`'s
+    kernel in the same order, so entries equal ``colour_ssim(a[i], b[j])`` bit for bit; exactly 1
+    where a[i] == b[j]. Scratch: float64 filtered means of up to 2 x 128 MiB at once.
 
     Parameters
     ----------
@@ -387,14 +539,7 @@ def pairwise_colour_ssim(a, b, data_range: float | None = None, batch_size: int 
         raise ValueError(f"a and b must hold images of the same (H, W, C), got {a_shape} and {b_shape}")
     data_range = _resolve_data_range(x, y, data_range)
     _check_window(*x.shape[1:3])
-    n, m = x.shape[0], y.shape[0]
-    xs, ys = _kernel_arrays(x, y)
-    x_means, y_means = _channel_means(xs), _channel_means(ys)
-    matrix = np.empty(n * m)
-    for start in range(0, n * m, int(batch_size)):
-        pairs = np.arange(start, min(start + int(batch_size), n * m))
-        matrix[pairs] = _kernel_ssim(xs, ys, pairs // m, pairs % m, data_range, x_means, y_means)
-    return matrix.reshape(n, m)
+    return _pairwise_ssim(*_kernel_arrays(x, y), data_range, batch_size)
 
 
 def bootstrap_interval(values: np.ndarray, groups: np.ndarray | None = None, resamples: int = 1000,
