@@ -612,3 +612,136 @@ def test_grey_pixels_and_median_interval():
     assert median == 0.3 and low <= median <= high and high <= 5.0
     assert dist.median_interval([0.7]) == (0.7, 0.7, 0.7)
     assert all(math.isnan(v) for v in dist.median_interval([math.nan]))
+
+
+# --------------------------------------------------------------------------- exact nearest neighbours via one product
+
+def direct(a, b) -> torch.Tensor:
+    return torch.cdist(torch.as_tensor(a, dtype=torch.float64), torch.as_tensor(b, dtype=torch.float64),
+                       compute_mode="donot_use_mm_for_euclid_dist")
+
+
+def direct_prdc(real, fake, k: int = 5) -> dict:
+    """PRDC as prdc_scores computed it on direct distances before the matrix-product path (the reference)."""
+    x, y = torch.as_tensor(real, dtype=torch.float64), torch.as_tensor(fake, dtype=torch.float64)
+    used = min(k, len(x) - 2, len(y) - 2)
+    real_radius, fake_radius = (direct(p, p).kthvalue(used + 1, dim=1).values for p in (x, y))
+    between = direct(x, y)
+    inside_real = between < real_radius[:, None]
+    return {"precision": float(inside_real.any(dim=0).double().mean()),
+            "recall": float((between < fake_radius[None, :]).any(dim=1).double().mean()),
+            "density": float(inside_real.sum(dim=0).double().mean() / used),
+            "coverage": float((between.min(dim=1).values < real_radius).double().mean()), "k": float(used)}
+
+
+def tied_features(rng: np.random.Generator, n: int, d: int) -> np.ndarray:
+    """Features with exact duplicates, one-hot points at equal distances, and large offsets (rounding-prone)."""
+    x = rng.normal(size=(n, d)) + 50.0
+    x[: n // 4] = x[n // 4: 2 * (n // 4)]               # exact copies
+    x[-3:] = 0.0
+    x[-3:, :3] = np.eye(3) * 7.0                        # three points pairwise at the same distance
+    return x
+
+
+def test_bounded_distances_decide_as_the_direct_distances():
+    rng = np.random.default_rng(11)
+    for n, m, d in ((30, 40, 700), (9, 5, 3), (25, 25, 1024)):
+        a, b = torch.from_numpy(tied_features(rng, n, d)), torch.from_numpy(tied_features(rng, m, d))
+        exact = direct(a, b)
+        bounded = dist._BoundedDistances(a, b)
+        assert ((bounded.approx - exact).abs() <= bounded.bound).all()
+        for k in (1, 2, 4):
+            assert torch.equal(bounded.kth_smallest(k), exact.kthvalue(k, dim=1).values)
+        # thresholds at, one ulp below and one ulp above the direct distances: the hardest ties
+        for thresholds in (exact, torch.nextafter(exact, torch.tensor(-math.inf, dtype=torch.float64)),
+                           torch.nextafter(exact, torch.tensor(math.inf, dtype=torch.float64))):
+            assert torch.equal(bounded.less_than(thresholds), exact < thresholds)
+        columns = torch.tensor([0, 2, 3])
+        assert torch.equal(bounded.kth_smallest(2, columns), exact[:, columns].kthvalue(2, dim=1).values)
+        square = torch.cat([a, a[:3]])  # a set against itself, with copies
+        itself = direct(square, square).fill_diagonal_(math.inf)
+        assert torch.equal(dist._BoundedDistances(square, square).kth_smallest(1, skip_diagonal=True),
+                           itself.min(dim=1).values)
+
+
+def test_prdc_equals_the_direct_distances_bit_for_bit():
+    rng = np.random.default_rng(5)
+    for n, m, d in ((40, 35, 704), (12, 12, 16), (6, 9, 1024)):
+        real, fake = tied_features(rng, n, d), tied_features(rng, m, d)
+        for candidate in (fake, real[rng.permutation(n)][:m], np.repeat(fake[:1], m, axis=0), real + 1e-9):
+            for k in (1, 5):
+                assert dist.prdc_scores(real, candidate, k) == direct_prdc(real, candidate, k)
+
+
+def test_nearest_distances_equal_the_minima_of_the_pairwise_blocks():
+    rng = np.random.default_rng(8)
+    images = textures(14, size=16)
+    features = torch.from_numpy(tied_features(rng, 14, 300))
+    labels = np.array(list("aabbbcccaabbzc"))
+    for a, b in ((images[:9], images), (features[:9], features)):
+        full = dist.pairwise_distances(a, b) if a.dtype == torch.uint8 else direct(a, b)
+        nearest = dist.nearest_distances(a, b, labels)
+        assert torch.equal(nearest[None], full.min(dim=1).values)
+        for label in set(labels):
+            assert torch.equal(nearest[label], full[:, torch.from_numpy(np.flatnonzero(labels == label))].min(dim=1).values)
+        own = dist.nearest_distances(b, b, labels, skip_diagonal=True)
+        itself = (dist.pairwise_distances(b, b) if b.dtype == torch.uint8 else direct(b, b)).fill_diagonal_(math.inf)
+        assert torch.equal(own[None], itself.min(dim=1).values)
+        for label in set(labels):
+            assert torch.equal(own[label], itself[:, torch.from_numpy(np.flatnonzero(labels == label))].min(dim=1).values)
+        assert own["z"][12] == math.inf  # the only "z": no other image of its group
+    g, t, h = features[:5], features[5:11], features[11:]
+    whole = dist.memorisation(g, t, h)
+    parts = dist.memorisation_from_nearest(dist.nearest_distances(g, t)[None], dist.nearest_distances(g, h)[None],
+                                           dist.nearest_distances(h, t)[None],
+                                           dist.nearest_distances(h, h, skip_diagonal=True)[None], len(t))
+    assert (parts.rate, parts.reference_rate, parts.nearest_is_train_share, parts.nearest_is_train_reference,
+            parts.threshold) == (whole.rate, whole.reference_rate, whole.nearest_is_train_share,
+                                 whole.nearest_is_train_reference, whole.threshold)
+
+
+def test_fold_groups_without_a_sort_equal_the_sorted_ones():
+    def sorted_groups(x, y):  # the groups as computed before the fast path: np.unique over the rows
+        stacked = np.concatenate([x, y])
+        _, inverse = np.unique(stacked, axis=0, return_inverse=True)
+        inverse = inverse.ravel()
+        groups = np.arange(len(stacked)) + len(stacked)
+        in_both = np.isin(inverse, np.intersect1d(inverse[:len(x)], inverse[len(x):]))
+        groups[in_both] = inverse[in_both]
+        return groups
+
+    rng = np.random.default_rng(4)
+    x, y = rng.normal(size=(12, 5)), rng.normal(size=(9, 5))
+    zero_x, zero_y = np.zeros((2, 5)), -np.zeros((1, 5))  # -0.0 equals 0.0: a shared vector
+    for a, b in ((x, y), (x, np.concatenate([y, x[3:5]])), (np.concatenate([x, zero_x]), np.concatenate([y, zero_y])),
+                 (x, x[:1].repeat(4, axis=0)), (x, y.round(0)), (np.concatenate([x, x[:2]]), y)):
+        np.testing.assert_array_equal(dist._fold_groups(a, b), sorted_groups(a, b))
+
+
+def test_fid_interval_on_distinct_rows_equals_the_draws_on_every_row():
+    def every_row(real, fake, resamples, seed):  # fid_and_interval as computed before the distinct rows
+        g_xx, g_yy, g_xy = real @ real.T, fake @ fake.T, real @ fake.T
+        value = dist._fid_from_grams(g_xx, g_yy, g_xy)
+        rng = np.random.default_rng(seed)
+        draws = np.empty(resamples)
+        for b in range(resamples):
+            i, j = rng.integers(0, len(real), len(real)), rng.integers(0, len(fake), len(fake))
+            w_x, w_y = np.bincount(i, minlength=len(real)), np.bincount(j, minlength=len(fake))
+            i, j = np.flatnonzero(w_x), np.flatnonzero(w_y)
+            draws[b] = dist._fid_from_grams(g_xx[np.ix_(i, i)], g_yy[np.ix_(j, j)], g_xy[np.ix_(i, j)],
+                                            w_x[i].astype(np.float64), w_y[j].astype(np.float64))
+        draws -= draws.mean() - value
+        low, high = np.quantile(draws, [0.025, 0.975])
+        return value, max(float(low), 0.0), max(float(high), 0.0)
+
+    rng = np.random.default_rng(9)
+    real = rng.normal(size=(40, 30))
+    fake = rng.normal(size=(35, 30)) + 0.3
+    # every row distinct: the same computation, the same bits
+    assert dist.fid_and_interval(real, fake, 20, 3) == every_row(real, fake, 20, 3)
+    # repeated vectors (a mean-image baseline: a few images, each many times): equal to rounding
+    repeated = np.repeat(fake[:4], [10, 9, 8, 8], axis=0)[rng.permutation(35)]
+    for a, b in ((real, repeated), (repeated, real), (np.concatenate([real, real[:5]]), repeated)):
+        np.testing.assert_allclose(dist.fid_and_interval(a, b, 20, 3), every_row(a, b, 20, 3), rtol=1e-11, atol=0)
+    value, low, high = dist.fid_and_interval(np.repeat(real[:1], 5, axis=0), repeated, 10)  # one vector: no spread
+    assert value == pytest.approx(every_row(np.repeat(real[:1], 5, axis=0), repeated, 10, 0)[0], rel=1e-11)

@@ -160,16 +160,35 @@ def _cached_set_scores(candidates: np.ndarray, reals: np.ndarray, batch_size: in
     return np.array(mean, dtype=np.float64), np.array(best, dtype=np.float64), np.array(index, dtype=np.int64)
 
 
+class TileReader:
+    """:func:`vtgen.io.images.read_tiles` with each file decoded once per stage run: the directions and
+    candidates read the same tiles (one modality's test tiles are one direction's real images and ground
+    truths and the other's inputs; the training targets are ``real_train``). A tile's decoding and resizing
+    do not depend on the others read with it, so the tensors are those of ``read_tiles``; its errors are
+    raised for the files not read before (the size check compares those)."""
+
+    def __init__(self):
+        self.store: dict = {}
+
+    def __call__(self, paths: list[str], size: int) -> torch.Tensor:
+        missing = list(dict.fromkeys(p for p in paths if (p, size) not in self.store))
+        if missing:
+            self.store.update(zip(((p, size) for p in missing), read_tiles(missing, size)))
+        if not paths:
+            return read_tiles([], size)
+        return torch.stack([self.store[(p, size)] for p in paths])
+
+
 def score_candidates(direction: str, scope: str, candidate: str, images: torch.Tensor, classes: np.ndarray,
                      names: list[str], groups: list[str], truth_paths: list[str],
                      real_test: dict[str, tuple[np.ndarray, list[str]]], size: int, batch_size: int,
-                     ssim_cache: dict | None = None) -> pd.DataFrame:
+                     ssim_cache: dict | None = None, tiles=read_tiles) -> pd.DataFrame:
     """Score one candidate set of a direction: aligned where a ground truth is listed, and set-to-set
     and nearest-real against ``real_test`` ({class: (images N x S x S x 3, paths)}). ``groups`` are the
     test groups the images come from (the unit of the bootstrap intervals). ``ssim_cache`` ({class: {}},
     shared by the candidates of one direction) computes each distinct image's set-to-set scores once:
     the nearest-neighbour outputs are training tiles ``real_train`` also scores, and the mean and flat
-    baselines repeat one image per class."""
+    baselines repeat one image per class. ``tiles`` reads the ground truths (e.g. a :class:`TileReader`)."""
     table = pd.DataFrame({"direction": direction, "scope": scope, "candidate": candidate, "class": classes,
                           "image": names, "group": groups, "ground_truth_path": truth_paths})
     for metric in ALIGNED_METRICS + SET_METRICS:
@@ -178,7 +197,7 @@ def score_candidates(direction: str, scope: str, candidate: str, images: torch.T
     pixels = _channels_last(images)
     has_truth = np.array([bool(p) for p in truth_paths])
     if has_truth.any():
-        truths = _channels_last(read_tiles([p for p in truth_paths if p], size))
+        truths = _channels_last(tiles([p for p in truth_paths if p], size))
         for metric, values in aligned_scores(pixels[has_truth], truths).items():
             table.loc[has_truth, metric] = values
     for name in np.unique(classes):
@@ -195,11 +214,13 @@ def score_candidates(direction: str, scope: str, candidate: str, images: torch.T
 
 
 def score_direction(direction: str, generated: pd.DataFrame, splits: pd.DataFrame, pairs: pd.DataFrame,
-                    batch_size: int, sets: dict | None = None) -> pd.DataFrame:
+                    batch_size: int, sets: dict | None = None, tiles=None) -> pd.DataFrame:
     """Per-image scores of one direction: every scope's generated test outputs and the reference candidates.
     When ``sets`` is a dict it receives the images scored, for the distribution metrics:
-    ``{(candidate, scope): (uint8 images, classes, groups)}`` plus ``"real_test"`` and ``"real_train"``."""
+    ``{(candidate, scope): (uint8 images, classes, groups)}`` plus ``"real_test"`` and ``"real_train"``.
+    ``tiles`` reads the tiles (a :class:`TileReader` shared by the directions; default ``read_tiles``)."""
     sets = {} if sets is None else sets
+    read = read_tiles if tiles is None else tiles
     target_modality = DIRECTIONS[direction][1]
     group_of = dict(zip(splits["path"], splits["group"]))
     test = generated[generated["split"] == "test"].sort_values(["scope", "class", "input_path"])
@@ -209,25 +230,25 @@ def score_direction(direction: str, generated: pd.DataFrame, splits: pd.DataFram
     real = splits[splits["modality"] == target_modality]
     real_test = {}
     test_rows = real[real["split"] == "test"].sort_values(["class", "path"])
-    test_images = read_tiles(list(test_rows["path"]), size)
+    test_images = read(list(test_rows["path"]), size)
     sets["real_test"] = (test_images, test_rows["class"].to_numpy(), test_rows["group"].to_numpy())
     for name in sorted(set(test_rows["class"])):
         rows_of = (test_rows["class"] == name).to_numpy()
         real_test[name] = (_channels_last(test_images[torch.tensor(rows_of)]), list(test_rows["path"][rows_of]))
     tables, ssim_cache = [], {}
     for scope, rows in test.groupby("scope", sort=True):
-        images, classes = read_tiles(list(rows["output_path"]), size), rows["class"].to_numpy()
+        images, classes = read(list(rows["output_path"]), size), rows["class"].to_numpy()
         groups = [group_of.get(p, p) for p in rows["input_path"]]
         sets[("generated", scope)] = (images, classes, np.array(groups))
         tables.append(score_candidates(
             direction, scope, "generated", images, classes, list(rows["output_path"]), groups,
-            list(rows["ground_truth_path"].fillna("")), real_test, size, batch_size, ssim_cache))
+            list(rows["ground_truth_path"].fillna("")), real_test, size, batch_size, ssim_cache, read))
 
     inputs = test.drop_duplicates("input_path")
     train_pairs = pairs[pairs["split"] == "train"].sort_values("input_path")
     references = reference_candidates(
-        read_tiles(list(inputs["input_path"]), size), inputs["class"].to_numpy(),
-        read_tiles(list(train_pairs["input_path"]), size), read_tiles(list(train_pairs["target_path"]), size),
+        read(list(inputs["input_path"]), size), inputs["class"].to_numpy(),
+        read(list(train_pairs["input_path"]), size), read(list(train_pairs["target_path"]), size),
         train_pairs["class"].to_numpy())
     input_groups = [group_of.get(p, p) for p in inputs["input_path"]]
     for candidate, images in references.items():
@@ -235,15 +256,15 @@ def score_direction(direction: str, generated: pd.DataFrame, splits: pd.DataFram
         sets[(candidate, "-")] = (images, inputs["class"].to_numpy(), np.array(input_groups))
         tables.append(score_candidates(direction, "-", candidate, images, inputs["class"].to_numpy(), names,
                                        input_groups, list(inputs["ground_truth_path"].fillna("")), real_test, size,
-                                       batch_size, ssim_cache))
+                                       batch_size, ssim_cache, read))
 
     real_train = real[(real["split"] == "train") & real["class"].isin(set(inputs["class"]))].sort_values("path")
-    train_images = read_tiles(list(real_train["path"]), size)
+    train_images = read(list(real_train["path"]), size)
     sets["real_train"] = (train_images, real_train["class"].to_numpy(), real_train["group"].to_numpy())
     tables.append(score_candidates(
         direction, "-", "real_train", train_images, real_train["class"].to_numpy(),
         list(real_train["path"]), list(real_train["group"]), [""] * len(real_train), real_test, size, batch_size,
-        ssim_cache))
+        ssim_cache, read))
     return pd.concat(tables, ignore_index=True)
 
 
@@ -488,8 +509,9 @@ def _pooled_generated(sets: dict):
 def memorisation_direction(direction: str, sets: dict, cache: FeatureCache) -> pd.DataFrame:
     """Memorisation of the pooled model's generated test images (MEMORISATION_COLUMNS): per class and
     over all, in pixels and in the classifier's features (where ``cache`` has that encoder), beside the
-    same rates for real held-out images. The four distance matrices are computed once per view for all
-    images and each class reads its blocks. ``train_groups``: distinct training split groups
+    same rates for real held-out images. Each image's nearest distances (to the training and held-out
+    images of each class and of all classes, :func:`vtgen.core.distribution.nearest_distances`) are
+    computed once per view and each class reads its rows. ``train_groups``: distinct training split groups
     (instances, sessions) of the class; for ``(all)`` the fewest of any class."""
     key = _pooled_generated(sets)
     gen_classes, train_classes, held_classes = sets[key][1], sets["real_train"][1], sets["real_test"][1]
@@ -500,14 +522,18 @@ def memorisation_direction(direction: str, sets: dict, cache: FeatureCache) -> p
         g, t, h = (sets[k][0] if view == "pixels" else cache(view, sets[k][0]) for k in (key, "real_train", "real_test"))
         if min(len(g), len(t), len(h)) == 0:
             continue
-        g_t, g_h = dist.pairwise_distances(g, t), dist.pairwise_distances(g, h)
-        h_t, h_h = dist.pairwise_distances(h, t), dist.pairwise_distances(h, h)
+        # each image's nearest distances per class of the other set, once for all classes
+        g_t, g_h = dist.nearest_distances(g, t, train_classes), dist.nearest_distances(g, h, held_classes)
+        h_t, h_h = dist.nearest_distances(h, t, train_classes), dist.nearest_distances(h, h, held_classes, True)
         for name in [*sorted(set(gen_classes)), "(all)"]:
             pick = (lambda c: np.ones(len(c), bool)) if name == "(all)" else (lambda c: c == name)
             gi, ti, hi = (torch.from_numpy(np.flatnonzero(pick(c))) for c in (gen_classes, train_classes, held_classes))
+            column = None if name == "(all)" else name
+            if column is not None and (column not in g_t or column not in g_h):
+                continue  # no training or no held-out image of the class
             try:
-                result = dist.memorisation_from_distances(g_t[gi][:, ti], g_h[gi][:, hi], h_t[hi][:, ti],
-                                                          h_h[hi][:, hi])
+                result = dist.memorisation_from_nearest(g_t[column][gi], g_h[column][gi], h_t[column][hi],
+                                                        h_h[column][hi], len(ti))
             except ValueError:
                 continue
             rate_low, rate_high = _interval_from_share(result.rate, len(gi))
@@ -732,6 +758,7 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
     settings = params["score"]
     tables, distributions, memorised, diverse, notes, not_scored, facts = [], [], [], [], [], {}, {}
     timings = {"ssim": 0.0, "distribution": 0.0, "memorisation and diversity": 0.0}
+    tiles = TileReader()
     for direction in DIRECTIONS:
         generated = read_table(generated_root / direction / "generated.parquet", GENERATED_COLUMNS,
                                f"the {direction} output table of the generate stage")
@@ -741,7 +768,7 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
         pairs = read_table(pairs_dir / f"{direction}.parquet", PAIR_COLUMNS, f"a {direction} pair table")
         sets: dict = {}
         started = time.perf_counter()
-        tables.append(score_direction(direction, generated, splits, pairs, settings["batch_size"], sets))
+        tables.append(score_direction(direction, generated, splits, pairs, settings["batch_size"], sets, tiles))
         timings["ssim"] += time.perf_counter() - started
         target = DIRECTIONS[direction][1]
         cache = FeatureCache(load_encoders(classify_dir, target, notes))
