@@ -431,3 +431,21 @@ def test_dvc_experiments_show_compare_apply_and_round_trip(tmp_path):
     run(["dvc", "pull"], project)
     assert "up to date" in run(["dvc", "status", "dvc.yaml"], project).stdout.lower()
     assert (project / "reports/index.html").is_file() and (project / "models/v2t/all/generator.pt").is_file()
+
+
+def test_render_refuses_a_params_file_for_another_dataset_and_names_the_fix(tmp_path, capsys, monkeypatch):
+    """DVC runs the stages of dvc.yaml as written: one written for the synthetic dataset still lists render after
+    params.yaml moves to the user's data. Rendering 720 unused samples would pass silently; the stage says
+    how to rewrite dvc.yaml instead, and writes nothing."""
+    from vtgen.cli import main
+
+    monkeypatch.chdir(tmp_path)  # a project of its own (its own run lock)
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    (tmp_path / "mine").mkdir()
+    params["dataset"] = dict(params["dataset"], source="generic", path=str(tmp_path / "mine"))
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    out = tmp_path / "data" / "raw" / "synthetic"
+    assert main(["render", "--params", str(tmp_path / "params.yaml"), "--out", str(out)]) == 2
+    error = capsys.readouterr().err
+    assert "dataset.source is 'generic'" in error and "`vtgen workflow`" in error
+    assert not out.exists()

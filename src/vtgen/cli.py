@@ -27,6 +27,11 @@ from vtgen.io.params import ParamsError, load_params
 def _render(args, params) -> None:
     from vtgen.stages.render import render_dataset
 
+    source = params["dataset"]["source"]
+    if source != "synthetic":  # only a dvc.yaml written for another source runs this stage (Snakemake leaves it out)
+        raise ValueError(f"{args.params}: dataset.source is '{source}', so the main job has no render stage, but it "
+                         f"was asked to run (a dvc.yaml written for the synthetic dataset still lists it): run "
+                         f"`vtgen workflow` to rewrite dvc.yaml for this source, then run again")
     cfg = params["synthetic"]
     info = render_dataset(Path(args.out), cfg["classes"], cfg["samples_per_class"], cfg["size"],
                           cfg["aligned"], cfg["seed"], workers=cfg["workers"])
