@@ -643,13 +643,16 @@ def tied_features(rng: np.random.Generator, n: int, d: int) -> np.ndarray:
     return x
 
 
-def test_bounded_distances_decide_as_the_direct_distances():
+def test_bounded_distances_decide_as_the_direct_distances(monkeypatch):
+    monkeypatch.setattr(dist, "EXACT_PAIRS", 100)  # several batches of direct pairs
     rng = np.random.default_rng(11)
     for n, m, d in ((30, 40, 700), (9, 5, 3), (25, 25, 1024)):
         a, b = torch.from_numpy(tied_features(rng, n, d)), torch.from_numpy(tied_features(rng, m, d))
         exact = direct(a, b)
         bounded = dist._BoundedDistances(a, b)
         assert ((bounded.approx - exact).abs() <= bounded.bound).all()
+        rows, columns = torch.randint(0, n, (50,)), torch.randint(0, m, (50,))
+        assert torch.equal(bounded.exact(rows, columns), exact[rows, columns])  # a pair's own direct distance
         for k in (1, 2, 4):
             assert torch.equal(bounded.kth_smallest(k), exact.kthvalue(k, dim=1).values)
         # thresholds at, one ulp below and one ulp above the direct distances: the hardest ties
@@ -718,7 +721,7 @@ def test_fold_groups_without_a_sort_equal_the_sorted_ones():
         np.testing.assert_array_equal(dist._fold_groups(a, b), sorted_groups(a, b))
 
 
-def test_fid_interval_on_distinct_rows_equals_the_draws_on_every_row():
+def test_fid_interval_on_distinct_rows_equals_the_draws_on_every_row(monkeypatch):
     def every_row(real, fake, resamples, seed):  # fid_and_interval as computed before the distinct rows
         g_xx, g_yy, g_xy = real @ real.T, fake @ fake.T, real @ fake.T
         value = dist._fid_from_grams(g_xx, g_yy, g_xy)
@@ -743,5 +746,7 @@ def test_fid_interval_on_distinct_rows_equals_the_draws_on_every_row():
     repeated = np.repeat(fake[:4], [10, 9, 8, 8], axis=0)[rng.permutation(35)]
     for a, b in ((real, repeated), (repeated, real), (np.concatenate([real, real[:5]]), repeated)):
         np.testing.assert_allclose(dist.fid_and_interval(a, b, 20, 3), every_row(a, b, 20, 3), rtol=1e-11, atol=0)
+    monkeypatch.setattr(dist, "FID_PARALLEL_ROWS", 0)  # the draws in two threads: the same draws, in order
+    np.testing.assert_allclose(dist.fid_and_interval(real, fake, 20, 3), every_row(real, fake, 20, 3), rtol=1e-12)
     value, low, high = dist.fid_and_interval(np.repeat(real[:1], 5, axis=0), repeated, 10)  # one vector: no spread
     assert value == pytest.approx(every_row(np.repeat(real[:1], 5, axis=0), repeated, 10, 0)[0], rel=1e-11)

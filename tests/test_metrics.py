@@ -503,6 +503,13 @@ def test_set_to_set_kernel_equals_the_paired_kernel_bit_for_bit(rng, monkeypatch
             for batch_size in (1, 5, 256):
                 np.testing.assert_array_equal(pairwise_colour_ssim(x, y, data_range, batch_size), paired)
         np.testing.assert_array_equal(np.diag(pairwise_colour_ssim(a, a)), 1.0)
+    # greyscale images (three equal channels) beside colour ones: a grey pair is computed on one channel
+    grey = np.repeat(rng.integers(0, 256, (4, 40, 29, 1), dtype=np.uint8), 3, axis=3)
+    mixed = np.concatenate([grey[:2], noisy(rng, grey[2:], 20)])
+    first, second = np.repeat(np.arange(4), 4), np.tile(np.arange(4), 4)
+    paired = metrics._kernel_ssim(*metrics._kernel_arrays(grey[first], mixed[second]), np.arange(16), np.arange(16),
+                                  255.0).reshape(4, 4)
+    np.testing.assert_array_equal(pairwise_colour_ssim(grey, mixed), paired)
 
 
 def test_kernel_compiles_without_a_writable_cache():

@@ -285,7 +285,7 @@ def _filtered_means(planar, offsets):
 
 
 @_jit(parallel=True)
-def _ssim_band_sums_shared(x, y, first, second, x_offsets, y_offsets, x_means, y_means, c1, c2):
+def _ssim_band_sums_shared(x, y, first, second, x_offsets, y_offsets, x_means, y_means, x_grey, y_grey, c1, c2):
     """``_ssim_band_sums`` for pairs whose images recur (a set-to-set matrix), equal to it bit for bit.
 
     x (N, C, H, W) and y (M, C, H, W): planar C-contiguous copies of the kernel's images (channels
@@ -294,7 +294,9 @@ def _ssim_band_sums_shared(x, y, first, second, x_offsets, y_offsets, x_means, y
     computed once instead of once per pair). A task filters only the two moments that depend on the
     pair, x'^2 + y'^2 and x'y'; every operation that remains is the one of ``_ssim_band_sums``, in the
     same order (same bands, row blocks, taps and sums), so the sums are the same bits: 2x less time
-    per pair (benchmarks/README.md, score stage, fourth round)."""
+    per pair (benchmarks/README.md, score stage, fourth round). x_grey, y_grey: images whose channels
+    are all equal; for a pair of two such images only channel 0 is computed (the others would repeat
+    its bits) and the entries of channels 1.. are left for the caller to copy from it."""
     _, channels, height, width = x.shape
     out_h, out_w = height - 2 * RADIUS, width - 2 * RADIUS
     bands = (out_h + BAND_ROWS - 1) // BAND_ROWS
@@ -302,6 +304,8 @@ def _ssim_band_sums_shared(x, y, first, second, x_offsets, y_offsets, x_means, y
     for task in numba.prange(first.shape[0] * channels * bands):
         p, c, band = task // (channels * bands), (task // bands) % channels, task % bands
         i, k = first[p], second[p]
+        if c > 0 and x_grey[i] and y_grey[k]:
+            continue
         top = band * BAND_ROWS
         rows = min(BAND_ROWS, out_h - top)
         moments = np.empty((2, rows + 2 * RADIUS + ROW_BLOCK - 1, width))
@@ -405,7 +409,8 @@ FILTERED_BYTES = 1 << 27  # filtered means held at once per set by _pairwise_ssi
 def _pairwise_ssim(xs: np.ndarray, ys: np.ndarray, data_range: float, batch_size: int) -> np.ndarray:
     """(N, M) Colour-SSIM of every pair of kernel arrays xs (N, H, W, C) and ys (M, H, W, C), through
     ``_ssim_band_sums_shared``: each image's channel means and filtered means computed once (per block
-    of at most ``FILTERED_BYTES`` of them), then ``batch_size`` pairs per kernel call, row by row."""
+    of at most ``FILTERED_BYTES`` of them), then ``batch_size`` pairs per kernel call, row by row.
+    A pair of greyscale images (three equal channels, e.g. tactile frames) is computed on one channel."""
     n, height, width, channels = xs.shape
     m = ys.shape[0]
     matrix = np.empty((n, m))
@@ -418,19 +423,23 @@ def _pairwise_ssim(xs: np.ndarray, ys: np.ndarray, data_range: float, batch_size
     def prepared(images):
         planar = np.ascontiguousarray(images.transpose(0, 3, 1, 2))
         offsets = _channel_means(np.ascontiguousarray(images))
-        return planar, offsets, _keep_torch_threads(_filtered_means, planar, offsets)
+        grey = (planar[:, 1:] == planar[:, :1]).all(axis=(1, 2, 3)) if channels > 1 else np.zeros(len(planar), bool)
+        return planar, offsets, _keep_torch_threads(_filtered_means, planar, offsets), grey
 
     for y_start in range(0, m, block):
-        y_planar, y_offsets, y_filtered = prepared(ys[y_start:y_start + block])
+        y_planar, y_offsets, y_filtered, y_grey = prepared(ys[y_start:y_start + block])
         width_m = len(y_planar)
         for x_start in range(0, n, block):
-            x_planar, x_offsets, x_filtered = prepared(xs[x_start:x_start + block])
+            x_planar, x_offsets, x_filtered, x_grey = prepared(xs[x_start:x_start + block])
             count = len(x_planar) * width_m
             scores = np.empty(count)
             for start in range(0, count, int(batch_size)):
                 pairs = np.arange(start, min(start + int(batch_size), count))
-                sums = _keep_torch_threads(_ssim_band_sums_shared, x_planar, y_planar, pairs // width_m,
-                                           pairs % width_m, x_offsets, y_offsets, x_filtered, y_filtered, *constants)
+                first, second = pairs // width_m, pairs % width_m
+                sums = _keep_torch_threads(_ssim_band_sums_shared, x_planar, y_planar, first, second, x_offsets,
+                                           y_offsets, x_filtered, y_filtered, x_grey, y_grey, *constants)
+                grey = x_grey[first] & y_grey[second]  # channels equal in both images: channel 0's bits
+                sums[grey, 1:] = sums[grey, :1]
                 scores[pairs] = _scores_from_sums(sums, height, width)
             matrix[x_start:x_start + len(x_planar), y_start:y_start + width_m] = scores.reshape(len(x_planar), width_m)
     return matrix
