@@ -270,3 +270,21 @@ def test_feature_cache_encodes_each_distinct_image_once():
     subset = cache("random", images, rows=np.array([4, 2]))
     assert torch.allclose(subset, image_features(RandomEncoder(), images[[4, 2]]), rtol=1e-5, atol=1e-7)
     assert cache.encoded["random"] == 4  # only image 4 was new
+
+
+@pytest.mark.parametrize("generated_rate, status, reading", [(0.042, "ok", "within noise of"),
+                                                              (0.25, "warning", "above"), (0.0, "ok", "not above")])
+def test_memorisation_is_flagged_only_beyond_the_intervals(generated_rate, status, reading):
+    """The aligned default's V2T pixel view had 0.042 of 144 generated against 0.007 of 144 real held-out:
+    the 95% Wilson intervals ([0.019, 0.088] and [0.001, 0.038]) overlap, so that is noise, as the report's
+    memorisation table reads it, not a warning; 0.25 is beyond them."""
+    from vtgen.stages.score import verdicts
+
+    table = pd.DataFrame([{"direction": "v2t", "class": "(all)", "view": "pixels", "candidate": c, "rate": r, "n": 144,
+                           "train_groups": 2} for c, r in (("generated", generated_rate), ("real_heldout", 1 / 144))])
+    distribution = pd.DataFrame([{"direction": "v2t", "scope": "all", "class": "(all)", "candidate": "generated",
+                                  "view": "pixels", "metric": "kid", "value": 0.1, "low": np.nan, "high": np.nan,
+                                  "n": 144, "n_reference": 144}])
+    (found,) = [v for v in verdicts(distribution, table) if v["metric"] == "memorisation"]
+    assert found["status"] == status and f"({reading} the real held-out rate 0.007 [0.001, 0.038]" in found["text"]
+    assert found["generated_interval"][0] <= generated_rate <= found["generated_interval"][1]

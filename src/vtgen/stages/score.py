@@ -710,13 +710,17 @@ def verdicts(table: pd.DataFrame, memorisation: pd.DataFrame) -> list[dict]:
             if not {"generated", "real_heldout"} <= set(pair.index):
                 continue
             gen, ref = pair.loc["generated"], pair.loc["real_heldout"]
-            worse = gen["rate"] > ref["rate"]
+            gen_ci, ref_ci = wilson_interval(gen["rate"], int(gen["n"])), wilson_interval(ref["rate"], int(ref["n"]))
+            worse = gen_ci[0] > ref_ci[1]  # above real held-out beyond both 95% intervals (the report's reading)
+            reading = ("above" if worse else "within noise of" if gen["rate"] > ref["rate"] else "not above")
             result.append({"direction": direction, "family": f"memorisation ({view})", "metric": "memorisation",
                            "view": view, "status": "warning" if worse else "ok", "generated": float(gen["rate"]),
-                           "real_heldout": float(ref["rate"]), "n": int(gen["n"]), "n_real": int(ref["n"]),
-                           "text": f"{direction.upper()} memorisation ({view}): {gen['rate']:.3f} of generated test "
-                                   f"images are closer to a training image than any held-out real image is "
-                                   f"({'above' if worse else 'not above'} the real held-out rate {ref['rate']:.3f}; "
+                           "generated_interval": list(gen_ci), "real_heldout": float(ref["rate"]),
+                           "real_heldout_interval": list(ref_ci), "n": int(gen["n"]), "n_real": int(ref["n"]),
+                           "text": f"{direction.upper()} memorisation ({view}): {gen['rate']:.3f} "
+                                   f"[{gen_ci[0]:.3f}, {gen_ci[1]:.3f}] of generated test images are closer to a "
+                                   f"training image than any held-out real image is ({reading} the real held-out "
+                                   f"rate {ref['rate']:.3f} [{ref_ci[0]:.3f}, {ref_ci[1]:.3f}], 95% Wilson; "
                                    f"n = {int(gen['n'])} generated, {int(ref['n'])} real)"
                                    + (ONE_GROUP_CAVEAT if worse and gen.get("train_groups", 2) == 1 else "")})
     return result
