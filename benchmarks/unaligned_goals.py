@@ -11,7 +11,8 @@ KID, FID and memorisation, each with a 95% interval and n) and, for item 3, the 
    and mean image's beyond the intervals (generated's upper bound below the baseline's lower bound; a
    bound missing counts as overlap). Blurred real and nearest neighbour are shown (stretch goal).
 3. Recognisable: GAN-test of the generated modality at least 0.8 x the lower of the two real-only
-   accuracies. The goal is stated for ``conditioning: none``: read the row with the run's conditioning.
+   accuracies. The goal is stated for a generator not told the class: where ``models/<direction>/all/train.json``
+   says the model was told it (``class`` or ``reference``), the row shows the figure and counts as n/a.
 4. No copying: memorisation rate of generated not above the upper bound of real held-out's interval.
 
     python benchmarks/unaligned_goals.py                 # the run in the working directory
@@ -42,8 +43,13 @@ def _verdict(ok: bool | None) -> str:
     return "n/a" if ok is None else "PASS" if ok else "FAIL"
 
 
-def goal_rows(goals: dict, classify: dict) -> list[tuple[str, str, str, str, str]]:
-    """(direction, item, measured, target, verdict) rows for issue 24's items 1-4."""
+TOLD_THE_CLASS = ("class", "reference")  # conditionings that hand the generator its input's class
+
+
+def goal_rows(goals: dict, classify: dict, conditioning: dict | None = None) -> list[tuple[str, str, str, str, str]]:
+    """(direction, item, measured, target, verdict) rows for issue 24's items 1-4; ``conditioning`` maps a
+    direction to its model's conditioning kind (item 3 is n/a for a model told the class)."""
+    conditioning = conditioning or {}
     rows = []
     for direction in sorted(goals):
         g = goals[direction]
@@ -75,7 +81,9 @@ def goal_rows(goals: dict, classify: dict) -> list[tuple[str, str, str, str, str
         reals = [(classify.get(m) or {}).get("real") for m in (source, target)]
         ok = None if gan is None or None in reals else gan >= 0.8 * min(reals)
         threshold = "-" if None in reals else f">= {0.8 * min(reals):.3g} (0.8 x min real-only {min(reals):.3g})"
-        rows.append((direction, f"3 GAN-test ({target})", "-" if gan is None else f"{gan:.3g}", threshold, _verdict(ok)))
+        told = conditioning.get(direction) in TOLD_THE_CLASS
+        item = f"3 GAN-test ({target})" + (f", told the class ({conditioning[direction]})" if told else "")
+        rows.append((direction, item, "-" if gan is None else f"{gan:.3g}", threshold, _verdict(None if told else ok)))
         mem = {k: v for k, v in g.items() if k.startswith("memorisation_")}
         for name, entry in mem.items():
             gen, real = entry.get("generated"), entry.get("real_heldout")
@@ -100,7 +108,12 @@ def main() -> None:
     classify = json.loads(metrics_path.read_text()).get("classify", {}) if metrics_path.is_file() else {}
     if not classify:
         print(f"note: {metrics_path} has no classify numbers: item 3 is n/a", file=sys.stderr)
-    rows = goal_rows(goals, classify)
+    conditioning = {}
+    for direction in MODALITY:
+        record = args.run / "models" / direction / "all" / "train.json"
+        if record.is_file():
+            conditioning[direction] = json.loads(record.read_text()).get("conditioning", "none")
+    rows = goal_rows(goals, classify, conditioning)
     print("| direction | goal item | generated (95% interval, n) | target | verdict |")
     print("|---|---|---|---|---|")
     for row in rows:
