@@ -750,3 +750,20 @@ def test_fid_interval_on_distinct_rows_equals_the_draws_on_every_row(monkeypatch
     np.testing.assert_allclose(dist.fid_and_interval(real, fake, 20, 3), every_row(real, fake, 20, 3), rtol=1e-12)
     value, low, high = dist.fid_and_interval(np.repeat(real[:1], 5, axis=0), repeated, 10)  # one vector: no spread
     assert value == pytest.approx(every_row(np.repeat(real[:1], 5, axis=0), repeated, 10, 0)[0], rel=1e-11)
+
+
+def test_pixel_squared_distances_are_the_float64_integers(monkeypatch):
+    monkeypatch.setattr(dist, "PIXEL_BLOCK", 1024)
+    generator = torch.Generator().manual_seed(2)
+    a = torch.randint(0, 256, (6, 3, 24, 30), generator=generator, dtype=torch.uint8)  # 2,160 pixels: 3 blocks
+    b = torch.cat([torch.randint(0, 256, (4, 3, 24, 30), generator=generator, dtype=torch.uint8),
+                   torch.zeros(1, 3, 24, 30, dtype=torch.uint8), torch.full((1, 3, 24, 30), 255, dtype=torch.uint8), a[:1]])
+    a[1] = 255  # the extremes: every product at its largest
+    x, y = a.flatten(1).double(), b.flatten(1).double()
+    expected = x.square().sum(1)[:, None] + y.square().sum(1)[None, :] - 2 * (x @ y.T)
+    assert torch.equal(dist.pixel_squared_distances(a, b), expected)
+    assert dist.pixel_squared_distances(a, b)[0, 6] == 0  # a copy
+    monkeypatch.setattr(torch, "get_float32_matmul_precision", lambda: "medium")  # float64 where float32 may be lowered
+    assert torch.equal(dist.pixel_squared_distances(a, b), expected)
+    # the nearest-neighbour baseline's choice is torch's Euclidean nearest
+    assert torch.equal(dist.pixel_squared_distances(a, b).argmin(dim=1), torch.cdist(x, y).argmin(dim=1))

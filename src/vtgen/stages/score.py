@@ -127,8 +127,8 @@ def reference_candidates(test_inputs: torch.Tensor, test_classes: np.ndarray, tr
                          train_targets: torch.Tensor, train_classes: np.ndarray) -> dict[str, torch.Tensor]:
     """Baseline outputs, one per test input (uint8 N x 3 x S x S): nearest-neighbour retrieval,
     the class's mean training image and a flat image of the class's mean training colour."""
-    distances = torch.cdist(test_inputs.flatten(1).double(), train_inputs.flatten(1).double())
-    nearest = train_targets[distances.argmin(dim=1)]
+    # exact integer squared distances: the same nearest (first of equals) as the Euclidean distance
+    nearest = train_targets[dist.pixel_squared_distances(test_inputs, train_inputs).argmin(dim=1)]
     mean_image = torch.empty_like(nearest)
     flat = torch.empty_like(nearest)
     for name in np.unique(test_classes):
