@@ -22,6 +22,11 @@ one-thread run is the steadier measure) and the stage's own split of its wall ti
     python benchmarks/score_scaling.py                       # scales 1 4 10, before = BEFORE, 1 round
     python benchmarks/score_scaling.py --scales 1 4 --repeats 2 --before HEAD
     python benchmarks/score_scaling.py --keep /tmp/score_bench   # keep (or reuse) the built inputs
+    python benchmarks/score_scaling.py --run /tmp/ms/clone_x10 --before 93f6e00 --repeats 2   # a finished run
+
+With ``--run FOLDER`` nothing is built: the stage reads a finished main job's ``data/pairs``,
+``data/generated`` and ``data/classify`` (tile paths relative to FOLDER), before and after alternately
+(ABAB), and the table gives each run's wall and CPU seconds.
 """
 
 from __future__ import annotations
@@ -166,16 +171,49 @@ def train_classifier(rows, path: Path, epochs: int = 2) -> None:
     save_classifier(path, model.eval(), classes, {"note": "benchmark stand-in, 2 epochs"})
 
 
-def run_once(src: Path, inputs: Path, score_params: dict, threads: int) -> dict:
+def run_once(src: Path, inputs: Path, score_params: dict, threads: int, cwd: Path | None = None) -> dict:
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    env.update({"OMP_NUM_THREADS": str(threads), "NUMBA_NUM_THREADS": str(threads)})
+    env.update({"OMP_NUM_THREADS": str(threads), "NUMBA_NUM_THREADS": str(threads),
+                "OPENBLAS_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)})
     with tempfile.TemporaryDirectory() as out:
         done = subprocess.run([sys.executable, "-c", RUNNER, str(src), json.dumps(score_params), str(inputs),
-                               str(Path(out) / "scores")], capture_output=True, text=True, env=env)
+                               str(Path(out) / "scores")], capture_output=True, text=True, env=env, cwd=cwd)
     if done.returncode:
         raise SystemExit(f"score run failed ({src}):\n{done.stderr[-3000:]}")
     line = next(x for x in done.stdout.splitlines() if x.startswith("BENCH "))
     return json.loads(line[6:])
+
+
+COMPILE = """
+import sys
+sys.path.insert(0, sys.argv[1])
+import numpy as np
+from vtgen.core.metrics import colour_ssim, grey_ssim, pairwise_colour_ssim
+x = np.zeros((2, 16, 16, 3), np.uint8)
+colour_ssim(x, x), grey_ssim(x, x), pairwise_colour_ssim(x, x)
+"""
+
+
+def time_run(folder: Path, sources: dict, score_params: dict, threads: int, repeats: int) -> None:
+    """``--run``: the stage on a finished run's data, the sources alternately; prints one table."""
+    for src in sources.values():  # numba compiles (and caches) each source's kernels once, untimed
+        subprocess.run([sys.executable, "-c", COMPILE, str(src)], check=True, capture_output=True)
+    runs: dict = {name: [] for name in sources}
+    for r in range(repeats):
+        for name in (list(sources) if r % 2 == 0 else list(sources)[::-1]):
+            load = os.getloadavg()[0]
+            result = run_once(sources[name], folder / "data", score_params, threads, cwd=folder)
+            runs[name].append({**result, "load": load})
+            print(f"{name}: {result['seconds']:.1f} s wall, {result['cpu_seconds']:.1f} s CPU, load {load:.1f} "
+                  f"{result['parts']}", file=sys.stderr, flush=True)
+    print(f"\nscore stage on {folder}, {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+          f"{threads} threads, runs alternated\n")
+    print("| code | wall s (runs) | CPU s (runs) | load average at each start | SSIM / distribution / memorisation + diversity, s |")
+    print("|---|---|---|---|---|")
+    for name, results in runs.items():
+        parts = " ; ".join(" / ".join(f"{v:.0f}" for v in r["parts"].values()) for r in results)
+        cells = [", ".join(f"{r[key]:.1f}" for r in results) for key in ("seconds", "cpu_seconds", "load")]
+        print(f"| {name} | " + " | ".join(cells) + f" | {parts} |")
 
 
 def slope(images: list[int], seconds: list[float]) -> float:
@@ -195,6 +233,7 @@ def main() -> None:
                         help="torch/OpenMP/numba threads of the stage (1: on a shared, loaded machine two threads "
                              "mostly wait for each other)")
     parser.add_argument("--keep", type=Path, help="build (or reuse) the inputs here instead of a temporary folder")
+    parser.add_argument("--run", type=Path, help="time the stage on this finished run folder's data/ instead")
     args = parser.parse_args()
     score_params = {"batch_size": 256}
     try:
@@ -214,6 +253,9 @@ def main() -> None:
         sources = {"after": extract(args.after, "after") if args.after else REPO / "src"}
         if args.before != "none":
             sources = {"before": extract(args.before, "before"), **sources}
+        if args.run:
+            time_run(args.run.resolve(), sources, score_params, args.threads, args.repeats)
+            return
         results: dict = {}
         for scale in args.scales:
             inputs = base / f"x{scale}"
