@@ -288,3 +288,24 @@ def test_memorisation_is_flagged_only_beyond_the_intervals(generated_rate, statu
     (found,) = [v for v in verdicts(distribution, table) if v["metric"] == "memorisation"]
     assert found["status"] == status and f"({reading} the real held-out rate 0.007 [0.001, 0.038]" in found["text"]
     assert found["generated_interval"][0] <= generated_rate <= found["generated_interval"][1]
+
+
+def test_tile_reader_gives_read_tiles_tensors_and_decodes_each_file_once(tmp_path, monkeypatch):
+    from PIL import Image
+
+    from vtgen.io.images import read_tiles
+    from vtgen.stages import score as score_stage
+
+    rng = np.random.default_rng(0)
+    paths = []
+    for i in range(70):  # enough for the two-thread split
+        path = tmp_path / f"t{i}.png"
+        Image.fromarray(rng.integers(0, 256, (20, 20, 3), dtype=np.uint8)).save(path)
+        paths.append(str(path))
+    calls = []
+    monkeypatch.setattr(score_stage, "read_tiles", lambda part, size: calls.append(len(part)) or read_tiles(part, size))
+    reader = score_stage.TileReader()
+    wanted = paths[5:] + paths[:5] + paths[:3]
+    assert torch.equal(reader(wanted, 16), read_tiles(wanted, 16))  # resized, in the order asked
+    assert torch.equal(reader(paths[:10], 16), read_tiles(paths[:10], 16))
+    assert sorted(calls) == [35, 35]  # every file decoded once, in two halves

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from concurrent.futures import ThreadPoolExecutor
 import math
 import time
 from pathlib import Path
@@ -165,7 +166,8 @@ class TileReader:
     candidates read the same tiles (one modality's test tiles are one direction's real images and ground
     truths and the other's inputs; the training targets are ``real_train``). A tile's decoding and resizing
     do not depend on the others read with it, so the tensors are those of ``read_tiles``; its errors are
-    raised for the files not read before (the size check compares those)."""
+    raised for the files not read before (the size check compares those, per half: a call's new files
+    are read in two halves in two threads)."""
 
     def __init__(self):
         self.store: dict = {}
@@ -173,7 +175,11 @@ class TileReader:
     def __call__(self, paths: list[str], size: int) -> torch.Tensor:
         missing = list(dict.fromkeys(p for p in paths if (p, size) not in self.store))
         if missing:
-            self.store.update(zip(((p, size) for p in missing), read_tiles(missing, size)))
+            # two halves in two threads (the decoders release the GIL); each half is checked as read_tiles checks
+            halves = [missing[:len(missing) // 2], missing[len(missing) // 2:]] if len(missing) >= 64 else [missing]
+            with ThreadPoolExecutor(len(halves)) as pool:
+                for half, tiles in zip(halves, pool.map(lambda part: read_tiles(part, size), halves)):
+                    self.store.update(zip(((p, size) for p in half), tiles))
         if not paths:
             return read_tiles([], size)
         return torch.stack([self.store[(p, size)] for p in paths])
