@@ -427,10 +427,14 @@ def _set_metrics(reference: dict, candidate: dict, fid_resamples: int,
             return result.accuracy, result.low, result.high
 
         record(view, "two_sample", two_sample)
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)  # its many small products and comparisons: a second thread costs more than it gives
         try:
             scores = dist.prdc_scores(real, fake)
         except ValueError:
             scores = {}
+        finally:
+            torch.set_num_threads(threads)
         for metric, count in (("precision", len(fake)), ("recall", len(real)), ("density", 0), ("coverage", len(real))):
             value = scores.get(metric, math.nan)
             out[(view, metric)] = (value, *_interval_from_share(value, count if scores else 0))
