@@ -149,6 +149,44 @@ def _row_taps(rows, k, m, j):
                  rows[k, m, j + 10])
 
 
+@_jit(inline="always")  # in the kernels' IR: a call per pixel would cost 3x
+def _vertical_block(moments, m, o, j, vertical):
+    """Outputs o .. o + 3 of the vertical 11-tap filter of moments[m] at column j, into vertical[0 .. 3, m, j]
+    (input rows o .. o + 13, each read once)."""
+    v0 = moments[m, o, j]
+    v1 = moments[m, o + 1, j]
+    v2 = moments[m, o + 2, j]
+    v3 = moments[m, o + 3, j]
+    v4 = moments[m, o + 4, j]
+    v5 = moments[m, o + 5, j]
+    v6 = moments[m, o + 6, j]
+    v7 = moments[m, o + 7, j]
+    v8 = moments[m, o + 8, j]
+    v9 = moments[m, o + 9, j]
+    v10 = moments[m, o + 10, j]
+    v11 = moments[m, o + 11, j]
+    v12 = moments[m, o + 12, j]
+    v13 = moments[m, o + 13, j]
+    vertical[0, m, j] = _taps(v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10)
+    vertical[1, m, j] = _taps(v1, v2, v3, v4, v5, v6, v7, v8, v9, v10, v11)
+    vertical[2, m, j] = _taps(v2, v3, v4, v5, v6, v7, v8, v9, v10, v11, v12)
+    vertical[3, m, j] = _taps(v3, v4, v5, v6, v7, v8, v9, v10, v11, v12, v13)
+
+
+@_jit(inline="always")
+def _ssim_term(mean_x, mean_y, second_sum, cross, x_o, y_o, c1, c2):
+    """One pixel of the SSIM map from the filtered moments of the centred channels x' = x - x_o, y' = y - y_o:
+    E[x'], E[y'], E[x'^2 + y'^2], E[x'y'] (Wang et al. 2004, eq. 13; the variances and covariance are
+    unchanged by centring, the means are shifted back)."""
+    mu_x = mean_x + x_o
+    mu_y = mean_y + y_o
+    luminance_num = mu_x * mu_y * 2.0 + c1
+    luminance_den = mu_x * mu_x + mu_y * mu_y + c1
+    contrast_num = (cross - mean_x * mean_y) * 2.0 + c2
+    contrast_den = (second_sum - (mean_x * mean_x + mean_y * mean_y)) + c2
+    return (luminance_num * contrast_num) / (luminance_den * contrast_den)
+
+
 @_jit()
 def _channel_means(images):
     """Mean of each channel of C-contiguous (N, H, W, C) images: float64 (N, C). Sums each
@@ -219,37 +257,14 @@ def _ssim_band_sums(x, y, first, second, x_offsets, y_offsets, c1, c2):
                 filled = r + 1
             for m in range(4):  # vertical pass: output rows o .. o + 3 from input rows o .. o + 13
                 for j in range(width):
-                    v0 = moments[m, o, j]
-                    v1 = moments[m, o + 1, j]
-                    v2 = moments[m, o + 2, j]
-                    v3 = moments[m, o + 3, j]
-                    v4 = moments[m, o + 4, j]
-                    v5 = moments[m, o + 5, j]
-                    v6 = moments[m, o + 6, j]
-                    v7 = moments[m, o + 7, j]
-                    v8 = moments[m, o + 8, j]
-                    v9 = moments[m, o + 9, j]
-                    v10 = moments[m, o + 10, j]
-                    v11 = moments[m, o + 11, j]
-                    v12 = moments[m, o + 12, j]
-                    v13 = moments[m, o + 13, j]
-                    vertical[0, m, j] = _taps(v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10)
-                    vertical[1, m, j] = _taps(v1, v2, v3, v4, v5, v6, v7, v8, v9, v10, v11)
-                    vertical[2, m, j] = _taps(v2, v3, v4, v5, v6, v7, v8, v9, v10, v11, v12)
-                    vertical[3, m, j] = _taps(v3, v4, v5, v6, v7, v8, v9, v10, v11, v12, v13)
+                    _vertical_block(moments, m, o, j, vertical)
             for row in range(min(ROW_BLOCK, rows - o)):  # horizontal pass and the SSIM map
                 for j in range(out_w):
                     mean_x = _row_taps(vertical, row, 0, j)
                     mean_y = _row_taps(vertical, row, 1, j)
                     second_sum = _row_taps(vertical, row, 2, j)
                     cross = _row_taps(vertical, row, 3, j)
-                    mu_x = mean_x + x_o
-                    mu_y = mean_y + y_o
-                    luminance_num = mu_x * mu_y * 2.0 + c1
-                    luminance_den = mu_x * mu_x + mu_y * mu_y + c1
-                    contrast_num = (cross - mean_x * mean_y) * 2.0 + c2
-                    contrast_den = (second_sum - (mean_x * mean_x + mean_y * mean_y)) + c2
-                    column_sums[j] += (luminance_num * contrast_num) / (luminance_den * contrast_den)
+                    column_sums[j] += _ssim_term(mean_x, mean_y, second_sum, cross, x_o, y_o, c1, c2)
         total = 0.0
         for j in range(out_w):
             total += column_sums[j]
@@ -325,24 +340,7 @@ def _ssim_band_sums_shared(x, y, first, second, x_offsets, y_offsets, x_means, y
                 filled = r + 1
             for m in range(2):
                 for j in range(width):
-                    v0 = moments[m, o, j]
-                    v1 = moments[m, o + 1, j]
-                    v2 = moments[m, o + 2, j]
-                    v3 = moments[m, o + 3, j]
-                    v4 = moments[m, o + 4, j]
-                    v5 = moments[m, o + 5, j]
-                    v6 = moments[m, o + 6, j]
-                    v7 = moments[m, o + 7, j]
-                    v8 = moments[m, o + 8, j]
-                    v9 = moments[m, o + 9, j]
-                    v10 = moments[m, o + 10, j]
-                    v11 = moments[m, o + 11, j]
-                    v12 = moments[m, o + 12, j]
-                    v13 = moments[m, o + 13, j]
-                    vertical[0, m, j] = _taps(v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10)
-                    vertical[1, m, j] = _taps(v1, v2, v3, v4, v5, v6, v7, v8, v9, v10, v11)
-                    vertical[2, m, j] = _taps(v2, v3, v4, v5, v6, v7, v8, v9, v10, v11, v12)
-                    vertical[3, m, j] = _taps(v3, v4, v5, v6, v7, v8, v9, v10, v11, v12, v13)
+                    _vertical_block(moments, m, o, j, vertical)
             for row in range(min(ROW_BLOCK, rows - o)):
                 out_row = top + o + row
                 for j in range(out_w):
@@ -350,13 +348,7 @@ def _ssim_band_sums_shared(x, y, first, second, x_offsets, y_offsets, x_means, y
                     mean_y = y_means[k, c, out_row, j]
                     second_sum = _row_taps(vertical, row, 0, j)
                     cross = _row_taps(vertical, row, 1, j)
-                    mu_x = mean_x + x_o
-                    mu_y = mean_y + y_o
-                    luminance_num = mu_x * mu_y * 2.0 + c1
-                    luminance_den = mu_x * mu_x + mu_y * mu_y + c1
-                    contrast_num = (cross - mean_x * mean_y) * 2.0 + c2
-                    contrast_den = (second_sum - (mean_x * mean_x + mean_y * mean_y)) + c2
-                    column_sums[j] += (luminance_num * contrast_num) / (luminance_den * contrast_den)
+                    column_sums[j] += _ssim_term(mean_x, mean_y, second_sum, cross, x_o, y_o, c1, c2)
         total = 0.0
         for j in range(out_w):
             total += column_sums[j]
