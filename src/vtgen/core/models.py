@@ -384,17 +384,27 @@ class ProjectionDiscriminator(nn.Module):
         return self.judge(x, labels)[0]
 
     def judge(self, x: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The patch logits of :meth:`forward` and, with ``class_head``, class logits (N x num_classes) of a
-        linear layer on the trunk's features averaged over the patches (the auxiliary classifier of AC-GAN,
-        Odena et al. 2017); None without it."""
+        """The patch logits of :meth:`forward` and :meth:`class_logits`, from one pass of the trunk."""
+        features = self.features(x)
+        return self.patch_logits(features, labels), self.class_logits(features)
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        """The trunk's features φ(x) (N x K x H' x W'), for :meth:`patch_logits` under several labellings."""
         check_image_batch(x, self.in_channels, None, type(self).__name__)
-        if labels.shape != (x.shape[0],):
-            raise ValueError(f"{type(self).__name__}: expected {x.shape[0]} class indices, got shape "
+        return self.trunk(x)
+
+    def patch_logits(self, features: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+        """ψ(φ) + ⟨e_c, φ⟩ per patch for trunk ``features`` and ``labels`` (N class indices)."""
+        if labels.shape != (features.shape[0],):
+            raise ValueError(f"{type(self).__name__}: expected {features.shape[0]} class indices, got shape "
                              f"{tuple(labels.shape)}")
-        features = self.trunk(x)
-        projection = (self.embedding(labels.to(x.device))[:, :, None, None] * features).sum(dim=1, keepdim=True)
-        classes = None if self.class_head is None else self.class_head(features.mean(dim=(2, 3)))
-        return self.logit(features) + projection, classes
+        projection = (self.embedding(labels.to(features.device))[:, :, None, None] * features).sum(dim=1, keepdim=True)
+        return self.logit(features) + projection
+
+    def class_logits(self, features: torch.Tensor) -> torch.Tensor | None:
+        """With ``class_head``, class logits (N x num_classes) of a linear layer on trunk ``features`` averaged over
+        the patches (the auxiliary classifier of AC-GAN, Odena et al. 2017); None without it."""
+        return None if self.class_head is None else self.class_head(features.mean(dim=(2, 3)))
 
 
 def build_discriminator(kind: str, size: int, ndf: int, kernel: int, patch_layers: int,

@@ -70,7 +70,7 @@ class TranslatorTraining:
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
     ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``statistics``, ``class_guidance``, ``skips``,
-    ``latent``, ``upsample``, ``semantic`` (see :meth:`class_step`) and ``d_lr_ratio`` (D's learning rate over
+    ``latent``, ``upsample``, ``semantic``, ``mismatch`` (see :meth:`class_step`) and ``d_lr_ratio`` (D's learning rate over
     G's), and needs ``num_classes``; ``semantic`` > 0 needs ``guide``, a classifier of the target modality over the
     same class indices (frozen here: eval mode, no gradients for its weights).
     """
@@ -206,6 +206,9 @@ class TranslatorTraining:
         of the target modality must recognise each augmented output as its input's class (the guide is trained apart
         from any classifier that scores the outputs). Measured: it buys recognition with pixel-scale stripes that
         fool classifiers of its kind (benchmarks/README.md, sixth round), so it is off by default.
+        With ``mismatch`` w > 0, D also learns to reject real images under a wrong class, D += (w/2)·L(D(A(y), c'), fake),
+        c' drawn uniformly from the other classes (:func:`other_classes`; the matching-aware discriminator of GAN-CLS,
+        Reed et al. 2016), so that looking real is not enough: an output must look like its class.
         ``upsample`` 'resize' builds G's decoder from resize convolutions (no checkerboard without a pixel loss to hide it).
         ``loss_g_l1`` is |G(x) − y| against the random partner: logged, never trained on.
         """
@@ -218,10 +221,17 @@ class TranslatorTraining:
         with self._autocast():
             fake = self.generator(x)
         real = y.detach().requires_grad_(bool(r1))
+        mismatch = cfg.get("mismatch", 0.0)
         with self._autocast():
-            d_real, class_real = self.discriminator.judge(augment(real), labels)
+            real_features = self.discriminator.features(augment(real))
+            d_real = self.discriminator.patch_logits(real_features, labels)
+            class_real = self.discriminator.class_logits(real_features)
             d_fake = self.discriminator(augment(fake.detach()), labels)
+            if mismatch:
+                d_wrong = self.discriminator.patch_logits(real_features, other_classes(labels, self.discriminator.num_classes))
         loss_d = 0.5 * (self._loss(d_real, True) + self._loss(d_fake, False))
+        if mismatch:
+            loss_d = loss_d + 0.5 * mismatch * self._loss(d_wrong, False)
         if r1:
             loss_d = loss_d + r1 * r1_penalty(d_real, real)
         if guidance:
@@ -271,6 +281,15 @@ class TranslatorTraining:
         self.discriminator.load_state_dict(state["discriminator"])
         self.opt_g.load_state_dict(copy.deepcopy(state["opt_g"]))
         self.opt_d.load_state_dict(copy.deepcopy(state["opt_d"]))
+
+
+def other_classes(labels: torch.Tensor, num_classes: int) -> torch.Tensor:
+    """For each class index c in ``labels``, one of the other ``num_classes`` − 1 classes, uniformly:
+    (c + k) mod K with k ~ U{1, …, K − 1} drawn from torch's global generator."""
+    if num_classes < 2:
+        raise ValueError(f"a wrong class needs at least 2 classes, got {num_classes}")
+    shift = torch.randint(1, num_classes, labels.shape).to(labels.device)
+    return (labels + shift) % num_classes
 
 
 def r1_penalty(real_logits: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
