@@ -221,6 +221,29 @@ class UNetGenerator(nn.Module):
             x = self.decoder[level](joined)
         return x
 
+    def encode(self, x: torch.Tensor, levels: tuple[int, ...]) -> list[torch.Tensor]:
+        """The encoder's outputs at ``levels`` (0-based, ascending) for ``x`` (N x in_channels x S x S) with a zero
+        latent code: the features PatchNCE compares (:mod:`vtgen.core.patchnce`). BatchNorm normalises by the
+        batch's statistics as in training, but its running statistics are left as they were."""
+        check_image_batch(x, self.in_channels, self.size, type(self).__name__)
+        if self.latent:
+            x = torch.cat([x, x.new_zeros(x.shape[0], self.latent, x.shape[2], x.shape[3])], dim=1)
+        norms = [m for m in self.encoder.modules() if isinstance(m, nn.BatchNorm2d)]
+        momenta, counts = [m.momentum for m in norms], [m.num_batches_tracked.clone() for m in norms]
+        outputs = []
+        try:
+            for m in norms:
+                m.momentum = 0.0  # running = (1 - 0)·running + 0·batch: unchanged
+            for level, block in enumerate(self.encoder[:max(levels) + 1]):
+                x = block(x)
+                if level in levels:
+                    outputs.append(x)
+        finally:
+            for m, momentum, count in zip(norms, momenta, counts):
+                m.momentum = momentum
+                m.num_batches_tracked.copy_(count)
+        return outputs
+
 
 def fixed_codes(generator: nn.Module, n: int, seed: int = 0) -> torch.Tensor | None:
     """``n`` latent codes for ``generator`` (N x latent, z ~ N(0, I)) from a generator seeded with ``seed``, so

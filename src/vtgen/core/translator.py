@@ -23,13 +23,16 @@ from torch import nn
 from vtgen.core.augment import augment_policy, diff_augment
 from vtgen.core.spectrum import rgb_log_radial_profiles
 from vtgen.core.gan import adversarial_loss, make_optimizer
-from vtgen.core.models import build_discriminator, conditional_pair, ProjectionDiscriminator, UNetGenerator
+from vtgen.core.models import (build_discriminator, conditional_pair, encoder_width, ProjectionDiscriminator,
+                               UNetGenerator)
+from vtgen.core.patchnce import patch_nce_loss, PatchProjection
 
 LOSS_NAMES = ("loss_d", "loss_g_gan", "loss_g_l1")
 STATE_KEYS = ("generator", "discriminator", "opt_g", "opt_d")
 PRECISIONS = ("fp32", "bf16")
 OBJECTIVES = ("pix2pix", "class_gan")
 MODE_SEEKING_EPS = 1e-5  # floor of the real gap in the mode-seeking ratio
+NCE_LEVELS = (0, 1, 2)  # generator encoder levels PatchNCE compares (at 64 px: 32, 16 and 8 px maps)
 
 
 def recognition_loss(guide: nn.Module, images: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
@@ -70,7 +73,7 @@ class TranslatorTraining:
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
     ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``statistics``, ``class_guidance``, ``skips``,
-    ``latent``, ``upsample``, ``semantic``, ``mismatch`` (see :meth:`class_step`) and ``d_lr_ratio`` (D's learning rate over
+    ``latent``, ``upsample``, ``semantic``, ``mismatch``, ``nce`` (see :meth:`class_step`) and ``d_lr_ratio`` (D's learning rate over
     G's), and needs ``num_classes``; ``semantic`` > 0 needs ``guide``, a classifier of the target modality over the
     same class indices (frozen here: eval mode, no gradients for its weights).
     """
@@ -100,11 +103,21 @@ class TranslatorTraining:
             if guide is None:
                 raise ValueError("class_gan.semantic > 0 needs a classifier of the target modality (the guide)")
             self.guide = guide.to(self.device).eval().requires_grad_(False)
+        # class_gan's nce: the projection heads of PatchNCE, trained with the generator by its optimiser
+        self.nce_levels = tuple(level for level in NCE_LEVELS if level < self.generator.depth - 1)
+        self.nce_projection = None
+        if self.objective == "class_gan" and settings.get("nce", 0.0):
+            self.nce_projection = PatchProjection([encoder_width(level, settings["ngf"]) for level in self.nce_levels]
+                                                  ).to(self.device).train()
+        g_parameters = list(self.generator.parameters())
+        if self.nce_projection is not None:
+            g_parameters += list(self.nce_projection.parameters())
         # class_gan's d_lr_ratio: D's learning rate over G's (two time-scale update rule, Heusel et al. 2017)
         d_ratio = settings.get("d_lr_ratio", 1.0) if self.objective == "class_gan" else 1.0
-        self.opt_g, self.opt_d = (make_optimizer(net.parameters(), settings["optimizer"], settings["lr"] * ratio,
+        self.opt_g, self.opt_d = (make_optimizer(parameters, settings["optimizer"], settings["lr"] * ratio,
                                                  settings["betas"], multi_tensor_on=self.device.type)
-                                  for net, ratio in ((self.generator, 1.0), (self.discriminator, d_ratio)))
+                                  for parameters, ratio in ((g_parameters, 1.0),
+                                                            (self.discriminator.parameters(), d_ratio)))
 
     def _autocast(self):
         if self.precision == "bf16":
@@ -209,6 +222,9 @@ class TranslatorTraining:
         With ``mismatch`` w > 0, D also learns to reject real images under a wrong class, D += (w/2)·L(D(A(y), c'), fake),
         c' drawn uniformly from the other classes (:func:`other_classes`; the matching-aware discriminator of GAN-CLS,
         Reed et al. 2016), so that looking real is not enough: an output must look like its class.
+        With ``nce`` w > 0, G += w·:func:`vtgen.core.patchnce.patch_nce_loss` between the generator's encoder features
+        of G(x) and of x (levels :data:`NCE_LEVELS`; PatchNCE, Park et al. 2020): each output patch keeps the structure
+        of the input patch at its place, with no pixel loss to a partner.
         ``upsample`` 'resize' builds G's decoder from resize convolutions (no checkerboard without a pixel loss to hide it).
         ``loss_g_l1`` is |G(x) − y| against the random partner: logged, never trained on.
         """
@@ -251,6 +267,12 @@ class TranslatorTraining:
             statistics = cfg.get("statistics", 0.0)
             if statistics:
                 loss_g = loss_g + statistics * statistics_loss(fake.float(), y)
+            nce = cfg.get("nce", 0.0)
+            if nce:
+                with self._autocast():
+                    keys = self.generator.encode(x, self.nce_levels)
+                    queries = self.generator.encode(torch.cat([fake, x[:, 3:]], dim=1), self.nce_levels)
+                loss_g = loss_g + nce * patch_nce_loss(queries, keys, self.nce_projection)
             semantic = cfg.get("semantic", 0.0)
             if semantic:
                 with self._autocast():
@@ -269,9 +291,13 @@ class TranslatorTraining:
             [torch.linalg.vector_norm(p.detach().float()) for p in self.generator.parameters()])))
 
     def state_dict(self) -> dict:
-        """Both networks and both optimisers, under the keys of :data:`STATE_KEYS`."""
-        return {"generator": self.generator.state_dict(), "discriminator": self.discriminator.state_dict(),
-                "opt_g": self.opt_g.state_dict(), "opt_d": self.opt_d.state_dict()}
+        """Both networks and both optimisers, under the keys of :data:`STATE_KEYS`, and PatchNCE's projection heads
+        under 'nce_projection' when ``nce`` is on."""
+        state = {"generator": self.generator.state_dict(), "discriminator": self.discriminator.state_dict(),
+                 "opt_g": self.opt_g.state_dict(), "opt_d": self.opt_d.state_dict()}
+        if self.nce_projection is not None:
+            state["nce_projection"] = self.nce_projection.state_dict()
+        return state
 
     def load_state_dict(self, state: dict) -> None:
         """Restore what :meth:`state_dict` returned (copies: torch's optimiser ``load_state_dict`` would share
@@ -281,6 +307,8 @@ class TranslatorTraining:
         self.discriminator.load_state_dict(state["discriminator"])
         self.opt_g.load_state_dict(copy.deepcopy(state["opt_g"]))
         self.opt_d.load_state_dict(copy.deepcopy(state["opt_d"]))
+        if self.nce_projection is not None:
+            self.nce_projection.load_state_dict(state["nce_projection"])
 
 
 def other_classes(labels: torch.Tensor, num_classes: int) -> torch.Tensor:
