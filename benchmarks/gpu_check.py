@@ -31,6 +31,7 @@ sys.path.insert(0, str(REPO / "src"))
 
 from vtgen.core.classifier import train_classifier  # noqa: E402
 from vtgen.core.translator import TranslatorTraining  # noqa: E402
+from vtgen.stages.train import objective_settings  # noqa: E402
 
 CLASSES = 10
 
@@ -90,11 +91,8 @@ def main() -> None:
           f"{torch.cuda.is_bf16_supported() if device.type == 'cuda' else 'n/a'}\n")
 
     fast, paper = params["presets"]["fast"], params["presets"]["paper"]
-    class_gan = dict(params["translation"]["class_gan"])
-    if class_gan.get("skips") == "all":
-        class_gan["skips"] = None  # the generator's spelling of every skip connection (as the train stage does)
     variants = {"fast, pix2pix": fast,
-                "fast, class_gan": dict(fast, objective="class_gan", **class_gan),
+                "fast, class_gan": objective_settings(fast, params["translation"], "class_gan", "v2t"),
                 "paper, pix2pix": paper}
     print("| preset, objective | batch | precision | s/step (median) | images/s | losses finite |")
     print("|---|---|---|---|---|---|")

@@ -97,7 +97,7 @@ def run_variant(params, pairs, splits, direction, overrides, seed, iterations, t
     size = settings["size"]
     train = load_pair_data(pairs, splits, direction, "all", size, root)
     objective, _ = resolve_objective(run["objective"], train)
-    settings = objective_settings(settings, run, objective)
+    settings = objective_settings(settings, run, objective, direction)
     conditioning = build_conditioning(run["conditioning"][direction], pairs, "all", train, params["classify"], seed)
     started = time.perf_counter()
     guide = build_guide(settings, train, params["classify"], seed)

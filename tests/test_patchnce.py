@@ -128,3 +128,14 @@ def test_the_nce_term_makes_outputs_keep_their_inputs_layout():
         training.step(x, y, torch.tensor([0, 0, 1, 1]))
     assert nce_now() < 0.7 * start
     assert F.l1_loss(training.generator(x), y) > 0  # no pixel target was used: only structure is asked for
+
+
+def test_nce_is_set_per_direction_and_each_model_trains_with_its_own_weight():
+    from vtgen.stages.train import objective_settings
+
+    translation = {"preset": "fast", "class_gan": {"r1": 0.1, "nce": {"v2t": 0.3, "t2v": 0.0}, "skips": "all"}}
+    assert objective_settings({"batch_size": 4}, translation, "class_gan", "v2t")["nce"] == 0.3
+    assert objective_settings({"batch_size": 4}, translation, "class_gan", "t2v")["nce"] == 0.0
+    assert translation["class_gan"]["nce"] == {"v2t": 0.3, "t2v": 0.0}  # the params are not changed
+    with pytest.raises(ValueError, match="class_gan.nce is given per direction"):
+        objective_settings({"batch_size": 4}, translation, "class_gan")

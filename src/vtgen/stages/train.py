@@ -207,15 +207,22 @@ def resolve_objective(setting: str, data: PairData) -> tuple[str, str]:
                          f"output to its class mean")
 
 
-def objective_settings(settings: dict, translation: dict, objective: str) -> dict:
+def objective_settings(settings: dict, translation: dict, objective: str, direction: str | None = None) -> dict:
     """The preset block with the class_gan keys of ``translation.class_gan`` added when that objective
-    trains (the pix2pix settings stay exactly the preset's)."""
+    trains (the pix2pix settings stay exactly the preset's); a key given per direction ({v2t: w, t2v: w}, as
+    ``nce`` is) takes ``direction``'s value."""
     if objective != "class_gan":
         return settings
     if settings["batch_size"] < 2 or settings["batch_size"] % 2:
         raise ValueError(f"the class_gan objective pairs the rows of a batch: batch_size must be even and >= 2, "
                          f"got {settings['batch_size']} (presets.{translation['preset']}.batch_size)")
     terms = dict(translation["class_gan"])
+    for key, value in terms.items():
+        if isinstance(value, dict):
+            if direction not in value:
+                raise ValueError(f"translation.class_gan.{key} is given per direction ({', '.join(value)}): "
+                                 f"name the direction to train, got {direction!r}")
+            terms[key] = value[direction]
     if terms.get("skips") == "all":
         terms["skips"] = None  # the generator's own spelling of every skip connection
     return dict(settings, objective="class_gan", **terms)
@@ -879,7 +886,7 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
     settings = check_training_fits(settings, len(data.targets), f"presets.{run['preset']}", f"train {direction}/{scope}",
                                    resolve_device(run["device"]).type)
     objective, objective_reason = resolve_objective(run["objective"], data)
-    settings = objective_settings(settings, run, objective)
+    settings = objective_settings(settings, run, objective, direction)
     guide = build_guide(settings, data, params["classify"], run["seed"])
     print(f"train {direction}/{scope}: {len(data.targets)} training pairs ({int(data.aligned.sum())} aligned), "
           f"preset '{run['preset']}' at {settings['size']} px, {settings['iterations']} iterations of batch "
