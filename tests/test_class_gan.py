@@ -550,6 +550,8 @@ def test_other_classes_never_keeps_the_class_and_reaches_every_other_one():
         assert counts[c] == 0 and (counts[torch.arange(5) != c] > 70).all()  # 400 draws over 4 classes: ~100 each
     with pytest.raises(ValueError, match="at least 2 classes"):
         other_classes(torch.zeros(3, dtype=torch.long), 1)
+    with pytest.raises(ValueError, match="mismatch .*at least 2 classes, got 1"):
+        TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, mismatch=1.0)), "cpu", num_classes=1)
 
 
 def test_mismatch_adds_half_its_weight_times_the_fake_loss_of_real_images_under_wrong_classes():

@@ -98,6 +98,9 @@ class TranslatorTraining:
         else:
             self.discriminator = build_discriminator(settings["discriminator"], size, settings["ndf"], kernel,
                                                      settings["patch_layers"], input_channels + 3).to(self.device).train()
+        if self.objective == "class_gan" and settings.get("mismatch", 0.0) and num_classes < 2:
+            raise ValueError(f"class_gan.mismatch shows real images under a wrong class: it needs at least 2 classes, "
+                             f"got {num_classes}: set translation.class_gan.mismatch to 0 for a one-class scope")
         self.guide = None
         if self.objective == "class_gan" and settings.get("semantic", 0.0):
             if guide is None:
@@ -244,7 +247,8 @@ class TranslatorTraining:
             class_real = self.discriminator.class_logits(real_features)
             d_fake = self.discriminator(augment(fake.detach()), labels)
             if mismatch:
-                d_wrong = self.discriminator.patch_logits(real_features, other_classes(labels, self.discriminator.num_classes))
+                wrong = other_classes(labels, self.discriminator.num_classes)
+                d_wrong = self.discriminator.patch_logits(real_features, wrong)
         loss_d = 0.5 * (self._loss(d_real, True) + self._loss(d_fake, False))
         if mismatch:
             loss_d = loss_d + 0.5 * mismatch * self._loss(d_wrong, False)
