@@ -6,6 +6,8 @@ channel axis (:func:`conditional_pair`) and returns raw logits (no sigmoid), to 
 ``BCEWithLogitsLoss``.
 
 * :class:`UNetGenerator` - pix2pix-style encoder/decoder with skip connections, down to 1x1.
+* :class:`ResnetGenerator` - two stride-2 levels, residual blocks at a quarter of the side, reflection padding
+  (Johnson et al. 2016; CycleGAN's and CUT's generator for unpaired translation).
 * :class:`GlobalDiscriminator` - four stride-2 convs and one linear layer: one logit per image.
 * :class:`PatchDiscriminator` - PatchGAN: a map of logits, one per overlapping patch.
 * :class:`ProjectionDiscriminator` - for class-paired data: a PatchGAN told the class, not the condition image.
@@ -160,6 +162,7 @@ class UNetGenerator(nn.Module):
         self.skips = self.depth - 1 if skips is None else min(skips, self.depth - 1)
         self.in_channels = in_channels
         self.out_channels = out_channels
+        self.ngf = ngf
         depth = self.depth
         widths = [encoder_width(level, ngf) for level in range(depth)]
 
@@ -201,16 +204,7 @@ class UNetGenerator(nn.Module):
         self.apply(init_weights)
 
     def forward(self, x: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
-        check_image_batch(x, self.in_channels, self.size, type(self).__name__)
-        if self.latent:
-            if z is None:
-                z = torch.randn(x.shape[0], self.latent, device=x.device)
-            if z.shape != (x.shape[0], self.latent):
-                raise ValueError(f"{type(self).__name__}: expected a code of shape {(x.shape[0], self.latent)}, "
-                                 f"got {tuple(z.shape)}")
-            x = torch.cat([x, z.to(x.dtype)[:, :, None, None].expand(-1, -1, x.shape[2], x.shape[3])], dim=1)
-        elif z is not None:
-            raise ValueError(f"{type(self).__name__}: this generator has no latent code (latent 0)")
+        x = with_latent_code(self, x, z)
         skips = []
         for block in self.encoder:
             x = block(x)
@@ -225,24 +219,151 @@ class UNetGenerator(nn.Module):
         """The encoder's outputs at ``levels`` (0-based, ascending) for ``x`` (N x in_channels x S x S) with a zero
         latent code: the features PatchNCE compares (:mod:`vtgen.core.patchnce`). BatchNorm normalises by the
         batch's statistics as in training, but its running statistics are left as they were."""
-        check_image_batch(x, self.in_channels, self.size, type(self).__name__)
-        if self.latent:
-            x = torch.cat([x, x.new_zeros(x.shape[0], self.latent, x.shape[2], x.shape[3])], dim=1)
-        norms = [m for m in self.encoder.modules() if isinstance(m, nn.BatchNorm2d)]
-        momenta, counts = [m.momentum for m in norms], [m.num_batches_tracked.clone() for m in norms]
-        outputs = []
-        try:
-            for m in norms:
-                m.momentum = 0.0  # running = (1 - 0)·running + 0·batch: unchanged
-            for level, block in enumerate(self.encoder[:max(levels) + 1]):
-                x = block(x)
-                if level in levels:
-                    outputs.append(x)
-        finally:
-            for m, momentum, count in zip(norms, momenta, counts):
-                m.momentum = momentum
-                m.num_batches_tracked.copy_(count)
-        return outputs
+        return encoder_outputs(self, self.encoder, x, levels)
+
+    @property
+    def feature_levels(self) -> int:
+        """Encoder levels :meth:`encode` may return (all but the 1x1 bottleneck)."""
+        return self.depth - 1
+
+    def feature_width(self, level: int) -> int:
+        """Channels of :meth:`encode`'s output at ``level``."""
+        return encoder_width(level, self.ngf)
+
+
+def with_latent_code(generator: nn.Module, x: torch.Tensor, z: torch.Tensor | None) -> torch.Tensor:
+    """``x`` (checked: N x generator.in_channels x S x S) with the generator's latent code z (N x k; drawn from
+    torch's global generator when None) broadcast over the image as k more channels; ``x`` itself when the
+    generator has no code (``latent`` 0, where a given ``z`` is refused)."""
+    name = type(generator).__name__
+    check_image_batch(x, generator.in_channels, generator.size, name)
+    if not generator.latent:
+        if z is not None:
+            raise ValueError(f"{name}: this generator has no latent code (latent 0)")
+        return x
+    if z is None:
+        z = torch.randn(x.shape[0], generator.latent, device=x.device)
+    if z.shape != (x.shape[0], generator.latent):
+        raise ValueError(f"{name}: expected a code of shape {(x.shape[0], generator.latent)}, got {tuple(z.shape)}")
+    return torch.cat([x, z.to(x.dtype)[:, :, None, None].expand(-1, -1, x.shape[2], x.shape[3])], dim=1)
+
+
+def encoder_outputs(generator: nn.Module, levels_in_order: nn.ModuleList, x: torch.Tensor,
+                    levels: tuple[int, ...]) -> list[torch.Tensor]:
+    """The outputs of ``levels_in_order[l]`` for l in ``levels`` (0-based, ascending), run on ``x`` with a zero
+    latent code: the features PatchNCE compares (:mod:`vtgen.core.patchnce`). BatchNorm normalises by the
+    batch's statistics as in training, but its running statistics and counters are left as they were."""
+    check_image_batch(x, generator.in_channels, generator.size, type(generator).__name__)
+    if generator.latent:
+        x = torch.cat([x, x.new_zeros(x.shape[0], generator.latent, x.shape[2], x.shape[3])], dim=1)
+    norms = [m for m in levels_in_order.modules() if isinstance(m, nn.BatchNorm2d)]
+    momenta, counts = [m.momentum for m in norms], [m.num_batches_tracked.clone() for m in norms]
+    outputs = []
+    try:
+        for m in norms:
+            m.momentum = 0.0  # running = (1 - 0)·running + 0·batch: unchanged
+        for level, block in enumerate(levels_in_order[:max(levels) + 1]):
+            x = block(x)
+            if level in levels:
+                outputs.append(x)
+    finally:
+        for m, momentum, count in zip(norms, momenta, counts):
+            m.momentum = momentum
+            m.num_batches_tracked.copy_(count)
+    return outputs
+
+
+class ResidualBlock(nn.Module):
+    """x + F(x), F = [3x3 conv, BatchNorm, ReLU, 3x3 conv, BatchNorm], reflection-padded (He et al. 2016;
+    Johnson et al. 2016's transformation block)."""
+
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        self.body = nn.Sequential(
+            nn.Conv2d(channels, channels, 3, padding=1, padding_mode="reflect", bias=False), nn.BatchNorm2d(channels),
+            nn.ReLU(),
+            nn.Conv2d(channels, channels, 3, padding=1, padding_mode="reflect", bias=False), nn.BatchNorm2d(channels))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.body(x)
+
+
+GENERATORS = ("unet", "resnet")
+RESNET_BLOCKS = 6  # residual blocks at a quarter of the side (CycleGAN: 6 at 128 px)
+
+
+class ResnetGenerator(nn.Module):
+    """Fully convolutional translator for texture: ``N x in_channels x S x S`` to ``N x out_channels x S x S`` in
+    [-1, 1] (Johnson et al. 2016; the generator of CycleGAN and CUT, which translate without aligned pairs).
+
+    A 7x7 conv at full side (level 0, ngf channels), two stride-2 3x3 convs (levels 1 and 2: 2·ngf at S/2,
+    4·ngf at S/4), ``blocks`` :class:`ResidualBlock` at S/4, two nearest 2x + 3x3 conv upsamplings (no
+    checkerboard, Odena et al. 2016) and a 7x7 conv with tanh; BatchNorm and ReLU between, every convolution
+    reflection-padded. No path reaches a 1x1 bottleneck, so no level draws one image-wide layout (the U-Net's
+    dark-framed blobs on class pairs) and the borders are not zero-padded. ``latent`` is the U-Net's
+    (:func:`with_latent_code`); BatchNorm, unlike instance norm, keeps the constant code and class channels.
+    """
+
+    def __init__(self, size: int, ngf: int = 32, in_channels: int = 3, out_channels: int = 3, latent: int = 0,
+                 blocks: int = RESNET_BLOCKS) -> None:
+        super().__init__()
+        if isinstance(latent, bool) or not isinstance(latent, int) or latent < 0:
+            raise ValueError(f"latent must be an integer >= 0, got {latent!r}")
+        self.size, self.ngf, self.latent = check_size(size), ngf, latent
+        self.in_channels, self.out_channels = in_channels, out_channels
+
+        def conv(i: int, o: int, kernel: int, stride: int = 1, bias: bool = False) -> nn.Conv2d:
+            return nn.Conv2d(i, o, kernel, stride=stride, padding=kernel // 2, padding_mode="reflect", bias=bias)
+
+        def normed(*layers: nn.Module, width: int) -> nn.Sequential:
+            return nn.Sequential(*layers, nn.BatchNorm2d(width), nn.ReLU())
+
+        widths = [self.feature_width(level) for level in range(3)]
+        self.encoder = nn.ModuleList([
+            normed(conv(in_channels + latent, widths[0], 7), width=widths[0]),
+            normed(conv(widths[0], widths[1], 3, stride=2), width=widths[1]),
+            normed(conv(widths[1], widths[2], 3, stride=2), width=widths[2]),
+        ])
+        self.blocks = nn.Sequential(*(ResidualBlock(widths[2]) for _ in range(blocks)))
+        self.decoder = nn.Sequential(
+            normed(nn.Upsample(scale_factor=2, mode="nearest"), conv(widths[2], widths[1], 3), width=widths[1]),
+            normed(nn.Upsample(scale_factor=2, mode="nearest"), conv(widths[1], widths[0], 3), width=widths[0]),
+            conv(widths[0], out_channels, 7, bias=True), nn.Tanh())
+        self.apply(init_weights)
+
+    feature_levels = 3  # levels :meth:`encode` may return: the 7x7 stem and the two stride-2 convs
+
+    def feature_width(self, level: int) -> int:
+        """Channels at encoder ``level`` (0, 1, 2): ngf, 2·ngf, 4·ngf."""
+        return self.ngf * 2 ** level
+
+    def forward(self, x: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
+        x = with_latent_code(self, x, z)
+        for block in self.encoder:
+            x = block(x)
+        return self.decoder(self.blocks(x))
+
+    def encode(self, x: torch.Tensor, levels: tuple[int, ...]) -> list[torch.Tensor]:
+        """The encoder's outputs at ``levels`` (:func:`encoder_outputs`)."""
+        return encoder_outputs(self, self.encoder, x, levels)
+
+
+def build_generator(settings: dict, in_channels: int = 3) -> nn.Module:
+    """The generator ``settings`` name (``generator``: 'unet', the default, or 'resnet'), from its size, ngf,
+    kernel, skips, latent and upsample (the U-Net's) keys. Raises ValueError for an unknown kind, and for U-Net
+    settings (skips, upsample 'resize') given to the ResNet, which has no skips and always resizes."""
+    kind = settings.get("generator", "unet")
+    latent = settings.get("latent", 0)
+    if kind == "unet":
+        return UNetGenerator(settings["size"], settings["ngf"], settings["kernel"], in_channels=in_channels,
+                             skips=settings.get("skips"), latent=latent,
+                             upsample=settings.get("upsample", "transpose"))
+    if kind == "resnet":
+        if settings.get("skips") is not None:
+            raise ValueError(f"class_gan.skips ({settings['skips']}) is a U-Net setting: set it to 'all' with "
+                             f"class_gan.generator: resnet, which has no skip connections")
+        return ResnetGenerator(settings["size"], settings["ngf"], in_channels=in_channels, latent=latent)
+    raise ValueError(f"unknown generator {kind!r} (allowed: {', '.join(GENERATORS)})")
 
 
 def fixed_codes(generator: nn.Module, n: int, seed: int = 0) -> torch.Tensor | None:

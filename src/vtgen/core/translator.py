@@ -23,8 +23,7 @@ from torch import nn
 from vtgen.core.augment import augment_policy, diff_augment
 from vtgen.core.spectrum import rgb_log_radial_profiles
 from vtgen.core.gan import adversarial_loss, make_optimizer
-from vtgen.core.models import (build_discriminator, conditional_pair, encoder_width, ProjectionDiscriminator,
-                               UNetGenerator)
+from vtgen.core.models import build_discriminator, build_generator, conditional_pair, ProjectionDiscriminator
 from vtgen.core.patchnce import patch_nce_loss, PatchProjection
 
 LOSS_NAMES = ("loss_d", "loss_g_gan", "loss_g_l1")
@@ -73,8 +72,8 @@ class TranslatorTraining:
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
     ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``statistics``, ``class_guidance``, ``skips``,
-    ``latent``, ``upsample``, ``semantic``, ``mismatch``, ``nce`` (see :meth:`class_step`) and ``d_lr_ratio`` (D's learning rate over
-    G's), and needs ``num_classes``; ``semantic`` > 0 needs ``guide``, a classifier of the target modality over the
+    ``latent``, ``upsample``, ``semantic``, ``mismatch``, ``nce`` (see :meth:`class_step`), ``d_lr_ratio`` (D's learning rate over
+    G's) and ``generator`` (:func:`vtgen.core.models.build_generator`: unet, the default, or resnet), and needs ``num_classes``; ``semantic`` > 0 needs ``guide``, a classifier of the target modality over the
     same class indices (frozen here: eval mode, no gradients for its weights).
     """
 
@@ -87,10 +86,7 @@ class TranslatorTraining:
             raise ValueError(f"unknown objective '{self.objective}' (allowed: {', '.join(OBJECTIVES)})")
         self.settings, self.device, self.precision = settings, torch.device(device), precision
         size, kernel = settings["size"], settings["kernel"]
-        self.generator = UNetGenerator(size, settings["ngf"], kernel, in_channels=input_channels,
-                                       skips=settings.get("skips"),
-                                       latent=settings.get("latent", 0),
-                                       upsample=settings.get("upsample", "transpose")).to(self.device).train()
+        self.generator = build_generator(settings, input_channels).to(self.device).train()
         if self.objective == "class_gan":
             self.discriminator = ProjectionDiscriminator(
                 num_classes, settings["ndf"], settings["patch_layers"], kernel,
@@ -107,10 +103,10 @@ class TranslatorTraining:
                 raise ValueError("class_gan.semantic > 0 needs a classifier of the target modality (the guide)")
             self.guide = guide.to(self.device).eval().requires_grad_(False)
         # class_gan's nce: the projection heads of PatchNCE, trained with the generator by its optimiser
-        self.nce_levels = tuple(level for level in NCE_LEVELS if level < self.generator.depth - 1)
+        self.nce_levels = tuple(level for level in NCE_LEVELS if level < self.generator.feature_levels)
         self.nce_projection = None
         if self.objective == "class_gan" and settings.get("nce", 0.0):
-            self.nce_projection = PatchProjection([encoder_width(level, settings["ngf"]) for level in self.nce_levels]
+            self.nce_projection = PatchProjection([self.generator.feature_width(level) for level in self.nce_levels]
                                                   ).to(self.device).train()
         g_parameters = list(self.generator.parameters())
         if self.nce_projection is not None:
@@ -229,6 +225,7 @@ class TranslatorTraining:
         of G(x) and of x (levels :data:`NCE_LEVELS`; PatchNCE, Park et al. 2020): each output patch keeps the structure
         of the input patch at its place, with no pixel loss to a partner.
         ``upsample`` 'resize' builds G's decoder from resize convolutions (no checkerboard without a pixel loss to hide it).
+        ``generator`` 'resnet' trains :class:`vtgen.core.models.ResnetGenerator` in place of the U-Net.
         ``loss_g_l1`` is |G(x) − y| against the random partner: logged, never trained on.
         """
         cfg = self.settings

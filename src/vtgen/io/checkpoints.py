@@ -14,7 +14,7 @@ import torch
 from vtgen.core.conditioning import Conditioning
 from vtgen.core.device import resolve_device
 from vtgen.core.domain import DIRECTIONS
-from vtgen.core.models import UNetGenerator
+from vtgen.core.models import build_generator
 
 
 def save_atomic(obj, path: Path) -> None:
@@ -66,7 +66,7 @@ def input_preparation(roi: Mapping, direction: str, model_size: int, *input_tile
             "input_channels": channels, "input_channels_from": how}
 
 
-def save_generator(path: Path, generator: UNetGenerator, settings: dict, direction: str, scope: str,
+def save_generator(path: Path, generator: torch.nn.Module, settings: dict, direction: str, scope: str,
                    preparation: dict | None = None, conditioning: Conditioning | None = None) -> None:
     """The file `vtgen generate` and `vtgen translate` load: weights plus what is needed to rebuild the network,
     (from :func:`input_preparation`) how a raw image becomes this model's input, and its conditioning."""
@@ -91,7 +91,7 @@ def _checked_preparation(saved: dict, size: int, path: Path) -> dict | None:
     return preparation
 
 
-def load_translator(model: str | Path, device: str = "cpu") -> tuple[UNetGenerator, dict]:
+def load_translator(model: str | Path, device: str = "cpu") -> tuple[torch.nn.Module, dict]:
     """Load a generator written by the train stage (its folder or its generator.pt), in eval mode.
 
     The record holds direction, scope, input_modality, output_modality, size, path,
@@ -108,9 +108,7 @@ def load_translator(model: str | Path, device: str = "cpu") -> tuple[UNetGenerat
         saved = torch.load(path, map_location="cpu", weights_only=False)
         settings = saved["settings"]
         conditioning = Conditioning.from_record(saved.get("conditioning"))
-        generator = UNetGenerator(settings["size"], settings["ngf"], settings["kernel"],
-                                  in_channels=3 + conditioning.extra_channels, skips=settings.get("skips"),
-                                  latent=settings.get("latent", 0), upsample=settings.get("upsample", "transpose"))
+        generator = build_generator(settings, 3 + conditioning.extra_channels)
         generator.load_state_dict(saved["state_dict"])
         meta = {k: saved[k] for k in ("direction", "scope", "input_modality", "output_modality")}
         meta["conditioning"] = conditioning

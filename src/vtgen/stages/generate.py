@@ -26,7 +26,7 @@ from vtgen.core.conditioning import Conditioning
 from vtgen.core.gan import to_model_range, to_uint8
 from vtgen.io.images import atomic_output_dir, display_path, labelled_sheet, read_rgb8, stream_map, write_png
 from vtgen.io.tables import read_table
-from vtgen.core.models import fixed_codes, UNetGenerator
+from vtgen.core.models import fixed_codes
 from vtgen.core.roi import image_tiles
 from vtgen.core.domain import DIRECTIONS
 from vtgen.io.tables import PAIR_COLUMNS, SPLIT_COLUMNS
@@ -38,7 +38,7 @@ IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".n
 
 
 @torch.no_grad()
-def translate(generator: UNetGenerator, images: torch.Tensor, batch_size: int = 32,
+def translate(generator: torch.nn.Module, images: torch.Tensor, batch_size: int = 32,
               conditioning: Conditioning | None = None, labels: torch.Tensor | None = None,
               seed: int = 0) -> torch.Tensor:
     """uint8 N x 3 x S x S -> uint8 N x 3 x S x S through ``generator`` (eval mode, no dropout); with a
@@ -106,7 +106,7 @@ def comparison_sheet(rows: pd.DataFrame, image_root: Path, per_class: int = 4,
     return labelled_sheet(sheet_rows, titles, per_class)
 
 
-def other_codes(generator: UNetGenerator, meta: dict, rows: pd.DataFrame, per_class: int = 4,
+def other_codes(generator: torch.nn.Module, meta: dict, rows: pd.DataFrame, per_class: int = 4,
                 codes: int = 2) -> dict[str, list[np.ndarray]]:
     """For the first ``per_class`` rows of each class (the preview's inputs), ``codes`` more translations
     under other latent codes (``translate`` seeds 10**6, 10**6 + 1, ...; the written images use their batch start)."""

@@ -41,7 +41,7 @@ from vtgen.core.device import resolve_device, resolve_precision
 from vtgen.core.domain import DIRECTIONS
 from vtgen.core.gan import random_positioning, to_model_range, to_uint8
 from vtgen.core.metrics import colour_ssim
-from vtgen.core.models import count_parameters, fixed_codes, UNetGenerator
+from vtgen.core.models import count_parameters, fixed_codes
 from vtgen.core.translator import LOSS_NAMES, STATE_KEYS, training_step_flops, TranslatorTraining
 from vtgen.io.checkpoints import input_preparation, save_atomic, save_generator
 from vtgen.io.images import atomic_output_dir, read_tiles
@@ -228,7 +228,7 @@ def objective_settings(settings: dict, translation: dict, objective: str, direct
     return dict(settings, objective="class_gan", **terms)
 
 
-def validation_l1(generator: UNetGenerator, validation: PairData, batch_size: int = 32,
+def validation_l1(generator: torch.nn.Module, validation: PairData, batch_size: int = 32,
                   conditioning: Conditioning | None = None) -> float:
     """Mean |G(x) - y| on [-1, 1] over the aligned validation pairs, in eval mode (no dropout, running BN);
     ``x`` carries ``conditioning``'s channels."""
@@ -252,7 +252,7 @@ def validation_l1(generator: UNetGenerator, validation: PairData, batch_size: in
 
 
 @torch.no_grad()
-def validation_by_class(generator: UNetGenerator, validation: PairData, conditioning: Conditioning | None = None,
+def validation_by_class(generator: torch.nn.Module, validation: PairData, conditioning: Conditioning | None = None,
                         batch_size: int = 32) -> dict[str, float]:
     """Per class, a validation quality where higher is better, in eval mode: the mean aligned Colour-SSIM
     (Wang et al. 2004, 255 range) over the class's aligned validation pairs; for a class without aligned
@@ -329,7 +329,7 @@ def all_settled(history: list[dict], tolerance: float, patience: int) -> bool:
 
 @dataclass
 class TrainResult:
-    generator: UNetGenerator
+    generator: torch.nn.Module
     history: list[dict]
     steps: int
     seconds: float
