@@ -38,7 +38,7 @@ def test_the_loss_sees_orientation_and_scale_not_position():
     moved = float(texture_loss(stripes(True, shift=4, side=64, period=16), vertical, bank))
     turned = float(texture_loss(stripes(False, side=64, period=16), vertical, bank))
     finer = float(texture_loss(stripes(True, side=64, period=8), vertical, bank))
-    assert moved < 0.1 * turned and moved < 0.1 * finer, (moved, turned, finer)
+    assert moved < 0.25 * turned and moved < 0.25 * finer, (moved, turned, finer)
 
 
 def test_the_bank_is_fixed_and_leaves_the_global_generator_alone():

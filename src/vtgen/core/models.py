@@ -17,6 +17,8 @@ Every network is initialised with :func:`init_weights` (DCGAN/pix2pix convention
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 from torch.nn.utils.parametrizations import spectral_norm
@@ -273,16 +275,28 @@ def encoder_outputs(generator: nn.Module, levels_in_order: nn.ModuleList, x: tor
     return outputs
 
 
+RESNET_GROUPS = 8  # GroupNorm groups in the ResNet generator (fewer when a width is not a multiple of 8)
+
+
+def group_norm(channels: int) -> nn.GroupNorm:
+    """GroupNorm over ``channels`` in up to :data:`RESNET_GROUPS` groups (Wu & He 2018): per image, so a
+    generator computes in evaluation exactly what it trained on. BatchNorm on the class-paired batch of 4 (two
+    rows per class) learned running statistics its batches never had: the ResNet's eval-mode outputs went
+    flat or black while its train-mode ones carried texture (benchmarks/README.md, "Eighth round"). Groups,
+    unlike instance norm, keep a constant code or class channel's offsets relative to the other channels."""
+    return nn.GroupNorm(math.gcd(RESNET_GROUPS, channels), channels)
+
+
 class ResidualBlock(nn.Module):
-    """x + F(x), F = [3x3 conv, BatchNorm, ReLU, 3x3 conv, BatchNorm], reflection-padded (He et al. 2016;
+    """x + F(x), F = [3x3 conv, GroupNorm, ReLU, 3x3 conv, GroupNorm], reflection-padded (He et al. 2016;
     Johnson et al. 2016's transformation block)."""
 
     def __init__(self, channels: int) -> None:
         super().__init__()
         self.body = nn.Sequential(
-            nn.Conv2d(channels, channels, 3, padding=1, padding_mode="reflect", bias=False), nn.BatchNorm2d(channels),
+            nn.Conv2d(channels, channels, 3, padding=1, padding_mode="reflect", bias=False), group_norm(channels),
             nn.ReLU(),
-            nn.Conv2d(channels, channels, 3, padding=1, padding_mode="reflect", bias=False), nn.BatchNorm2d(channels))
+            nn.Conv2d(channels, channels, 3, padding=1, padding_mode="reflect", bias=False), group_norm(channels))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return x + self.body(x)
@@ -298,10 +312,10 @@ class ResnetGenerator(nn.Module):
 
     A 7x7 conv at full side (level 0, ngf channels), two stride-2 3x3 convs (levels 1 and 2: 2·ngf at S/2,
     4·ngf at S/4), ``blocks`` :class:`ResidualBlock` at S/4, two nearest 2x + 3x3 conv upsamplings (no
-    checkerboard, Odena et al. 2016) and a 7x7 conv with tanh; BatchNorm and ReLU between, every convolution
-    reflection-padded. No path reaches a 1x1 bottleneck, so no level draws one image-wide layout (the U-Net's
-    dark-framed blobs on class pairs) and the borders are not zero-padded. ``latent`` is the U-Net's
-    (:func:`with_latent_code`); BatchNorm, unlike instance norm, keeps the constant code and class channels.
+    checkerboard, Odena et al. 2016) and a 7x7 conv with tanh; :func:`group_norm` and ReLU between, every
+    convolution reflection-padded. No path reaches a 1x1 bottleneck, so no level draws one image-wide layout (the
+    U-Net's dark-framed blobs on class pairs) and the borders are not zero-padded. ``latent`` is the U-Net's
+    (:func:`with_latent_code`).
     """
 
     def __init__(self, size: int, ngf: int = 32, in_channels: int = 3, out_channels: int = 3, latent: int = 0,
@@ -316,7 +330,7 @@ class ResnetGenerator(nn.Module):
             return nn.Conv2d(i, o, kernel, stride=stride, padding=kernel // 2, padding_mode="reflect", bias=bias)
 
         def normed(*layers: nn.Module, width: int) -> nn.Sequential:
-            return nn.Sequential(*layers, nn.BatchNorm2d(width), nn.ReLU())
+            return nn.Sequential(*layers, group_norm(width), nn.ReLU())
 
         widths = [self.feature_width(level) for level in range(3)]
         self.encoder = nn.ModuleList([
