@@ -107,6 +107,12 @@ def check_image_batch(x: torch.Tensor, channels: int, size: int | None, network:
         raise ValueError(f"{network}: expected {expected} input, got shape {shape}")
 
 
+def checked_latent(latent: int) -> int:
+    """Return ``latent`` (a generator's code channels) if it is an integer >= 0; raise ValueError otherwise."""
+    if isinstance(latent, bool) or not isinstance(latent, int) or latent < 0:
+        raise ValueError(f"latent must be an integer >= 0, got {latent!r}")
+    return latent
+
 def check_batchnorm_values(batch: int, map_shapes: list[tuple[int, int]], network: str, remedy: str) -> None:
     """Raise ValueError when a training batch of ``batch`` images leaves a BatchNorm layer one value per
     channel (``batch * H * W == 1`` for one of ``map_shapes``, the ``(H, W)`` each BatchNorm normalises):
@@ -151,9 +157,7 @@ class UNetGenerator(nn.Module):
             raise ValueError(f"upsample must be one of {UPSAMPLINGS}, got {upsample!r}")
         self.upsample = upsample
         up = (lambda i, o, bias: upsampling_conv(i, o, kernel, bias)) if upsample == "transpose" else resize_conv
-        if isinstance(latent, bool) or not isinstance(latent, int) or latent < 0:
-            raise ValueError(f"latent must be an integer >= 0, got {latent!r}")
-        self.latent = latent
+        self.latent = checked_latent(latent)
         check_kernel(kernel)
         if not 0.0 <= dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {dropout!r}")
@@ -321,9 +325,7 @@ class ResnetGenerator(nn.Module):
     def __init__(self, size: int, ngf: int = 32, in_channels: int = 3, out_channels: int = 3, latent: int = 0,
                  blocks: int = RESNET_BLOCKS) -> None:
         super().__init__()
-        if isinstance(latent, bool) or not isinstance(latent, int) or latent < 0:
-            raise ValueError(f"latent must be an integer >= 0, got {latent!r}")
-        self.size, self.ngf, self.latent = check_size(size), ngf, latent
+        self.size, self.ngf, self.latent = check_size(size), ngf, checked_latent(latent)
         self.in_channels, self.out_channels = in_channels, out_channels
 
         def conv(i: int, o: int, kernel: int, stride: int = 1, bias: bool = False) -> nn.Conv2d:
@@ -364,8 +366,9 @@ class ResnetGenerator(nn.Module):
 
 def build_generator(settings: dict, in_channels: int = 3) -> nn.Module:
     """The generator ``settings`` name (``generator``: 'unet', the default, or 'resnet'), from its size, ngf,
-    kernel, skips, latent and upsample (the U-Net's) keys. Raises ValueError for an unknown kind, and for U-Net
-    settings (skips, upsample 'resize') given to the ResNet, which has no skips and always resizes."""
+    latent and (the U-Net's) kernel, skips and upsample keys. The ResNet always resizes, so it ignores
+    ``upsample``; it has no skip connections, so ``skips`` other than all (None) is refused. Raises ValueError for
+    that and for an unknown kind."""
     kind = settings.get("generator", "unet")
     latent = settings.get("latent", 0)
     if kind == "unet":

@@ -109,7 +109,7 @@ class TranslatorTraining:
         if self.objective == "class_gan" and settings.get("nce", 0.0):
             self.nce_projection = PatchProjection([self.generator.feature_width(level) for level in self.nce_levels]
                                                   ).to(self.device).train()
-        # class_gan's texture: the fixed random filter bank whose Gram matrices compare an output with a real image
+        # class_gan's texture: the fixed random filter bank whose feature covariances compare an output with a real image
         self.texture_bank = (RandomFilterBank().to(self.device) if self.objective == "class_gan"
                              and settings.get("texture", 0.0) else None)
         g_parameters = list(self.generator.parameters())
@@ -212,10 +212,10 @@ class TranslatorTraining:
         With ``statistics`` w > 0, G += w·:func:`statistics_loss` (G(x), y): colour, contrast and power spectrum
         of each output against those of the real image of its class in its row (summary statistics only, so
         their pull towards the class's typical values cannot copy or average the images themselves).
-        With ``texture`` w > 0, G += w·:func:`vtgen.core.texture.texture_loss` (G(x), y): the Gram matrices of a fixed
-        random filter bank (texture statistics, Gatys et al. 2015; random filters, Ustyuzhaninov et al. 2017) of each
-        output against those of the real image of its class in its row: orientation, scale and contrast of the class's
-        texture, nothing of its layout.
+        With ``texture`` w > 0, G += w·:func:`vtgen.core.texture.texture_loss` (G(x), y): the feature covariances (centred
+        Gram matrices) of a fixed random filter bank (texture statistics, Gatys et al. 2015; random filters,
+        Ustyuzhaninov et al. 2017) of each output against those of the real image of its class in its row:
+        orientation, scale and contrast of the class's texture, nothing of its layout.
         With ``class_guidance`` w > 0, D's class head h also learns the class of the real images,
         D += w·CE(h(A(y)), c), and G is asked to be recognised as its input's class, G += w·CE(h(A(G(x))), c)
         (AC-GAN, Odena et al. 2017, with the classifier trained on real images only): a generator that is
