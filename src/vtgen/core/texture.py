@@ -75,3 +75,50 @@ def texture_loss(outputs: torch.Tensor, targets: torch.Tensor, bank: RandomFilte
         gap = torch.linalg.matrix_norm(feature_covariance(feature) - target)
         total = total + (gap / torch.linalg.matrix_norm(target).clamp_min(1e-12)).mean()
     return total / len(target_stats)
+
+
+CONTEXTUAL_LEVELS = (1, 2)    # bank levels the contextual loss compares: receptive fields 8 and 14 px
+CONTEXTUAL_SIDE = 16          # a map is read at every k-th row and column so that its side is at most this: 256
+                              # positions, a 256 x 256 similarity per image (all 1,024 of level 1 at 64 px: 4x the time)
+CONTEXTUAL_BANDWIDTH = 0.5    # h of Mechrez et al. 2018, eq. 3 (their value)
+
+
+def contextual_similarity(outputs: torch.Tensor, targets: torch.Tensor,
+                          bandwidth: float = CONTEXTUAL_BANDWIDTH) -> torch.Tensor:
+    """CX(X, Y) per image, X the output and Y the target feature maps (N x C x H x W each): with features centred
+    on Y's mean, d_ij the cosine distance of output feature i to target feature j,
+    d̃_ij = d_ij / (min_k d_ik + 1e-5), w_ij = exp((1 − d̃_ij)/h), CX_ij = w_ij / Σ_k w_ik and
+    CX = (1/|Y|) Σ_j max_i CX_ij (Mechrez et al. 2018, "The contextual loss for image transformation with
+    non-aligned data", eq. 1-4). 1 when every target feature is the clear nearest neighbour of some output
+    feature, wherever it lies; near 0 when the two sets share nothing. Returns N values in (0, 1]."""
+    n, c = outputs.shape[:2]
+    x = outputs.reshape(n, c, -1)
+    y = targets.reshape(n, c, -1)
+    centre = y.mean(dim=2, keepdim=True)
+    x = F.normalize(x - centre, dim=1)
+    y = F.normalize(y - centre, dim=1)
+    distance = (1 - x.transpose(1, 2) @ y).clamp_min(0)                     # N x |X| x |Y|
+    relative = distance / (distance.min(dim=2, keepdim=True).values + 1e-5)
+    affinity = torch.softmax((1 - relative) / bandwidth, dim=2)             # w_ij / Σ_k w_ik, computed stably
+    return affinity.max(dim=1).values.mean(dim=1)
+
+
+def contextual_loss(outputs: torch.Tensor, targets: torch.Tensor, bank: RandomFilterBank,
+                    levels: tuple[int, ...] = CONTEXTUAL_LEVELS) -> torch.Tensor:
+    """(1/L) Σ_l mean over images of −log CX(φ_l(o), φ_l(t)) (:func:`contextual_similarity`), φ_l the ``levels`` of
+    ``bank``, each read on a grid of at most :data:`CONTEXTUAL_SIDE` squared positions: each output against the
+    image of ``targets`` in its row. Where :func:`texture_loss` matches a
+    texture's summary, this asks every local feature of the real image to be present somewhere in the output, at
+    any place, so the output is built of the class's own local structures without being aligned with the image
+    (the contextual loss of Mechrez et al. 2018, on random filters in place of VGG). ``targets`` is data."""
+    with torch.no_grad():
+        target_features = bank(targets.detach().float())
+    output_features = bank(outputs.float())
+    total = outputs.new_zeros((), dtype=torch.float32)
+    for level in levels:
+        every = max(1, output_features[level].shape[-1] // CONTEXTUAL_SIDE)
+        row, column = (int(i) for i in torch.randint(every, (2,)))  # a fresh grid each call: every place is read in turn
+        similarity = contextual_similarity(output_features[level][..., row::every, column::every],
+                                           target_features[level][..., row::every, column::every])
+        total = total - torch.log(similarity.clamp_min(1e-12)).mean()
+    return total / len(levels)

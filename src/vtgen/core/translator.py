@@ -25,7 +25,7 @@ from vtgen.core.spectrum import rgb_log_radial_profiles
 from vtgen.core.gan import adversarial_loss, make_optimizer
 from vtgen.core.models import build_discriminator, build_generator, conditional_pair, ProjectionDiscriminator
 from vtgen.core.patchnce import patch_nce_loss, PatchProjection
-from vtgen.core.texture import RandomFilterBank, texture_loss
+from vtgen.core.texture import contextual_loss, RandomFilterBank, texture_loss
 
 LOSS_NAMES = ("loss_d", "loss_g_gan", "loss_g_l1")
 STATE_KEYS = ("generator", "discriminator", "opt_g", "opt_d")
@@ -73,7 +73,7 @@ class TranslatorTraining:
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
     ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``statistics``, ``class_guidance``, ``skips``,
-    ``latent``, ``upsample``, ``semantic``, ``mismatch``, ``nce``, ``texture`` (see :meth:`class_step`), ``d_lr_ratio`` (D's learning rate over
+    ``latent``, ``upsample``, ``semantic``, ``mismatch``, ``nce``, ``texture``, ``contextual`` (see :meth:`class_step`), ``d_lr_ratio`` (D's learning rate over
     G's) and ``generator`` (:func:`vtgen.core.models.build_generator`: unet, the default, or resnet), and needs ``num_classes``; ``semantic`` > 0 needs ``guide``, a classifier of the target modality over the
     same class indices (frozen here: eval mode, no gradients for its weights).
     """
@@ -111,7 +111,7 @@ class TranslatorTraining:
                                                   ).to(self.device).train()
         # class_gan's texture: the fixed random filter bank whose feature covariances compare an output with a real image
         self.texture_bank = (RandomFilterBank().to(self.device) if self.objective == "class_gan"
-                             and settings.get("texture", 0.0) else None)
+                             and (settings.get("texture", 0.0) or settings.get("contextual", 0.0)) else None)
         g_parameters = list(self.generator.parameters())
         if self.nce_projection is not None:
             g_parameters += list(self.nce_projection.parameters())
@@ -216,6 +216,8 @@ class TranslatorTraining:
         Gram matrices) of a fixed random filter bank (texture statistics, Gatys et al. 2015; random filters,
         Ustyuzhaninov et al. 2017) of each output against those of the real image of its class in its row:
         orientation, scale and contrast of the class's texture, nothing of its layout.
+        With ``contextual`` w > 0, G += w·:func:`vtgen.core.texture.contextual_loss` (G(x), y) on the same bank: every
+        local feature of the real image of its class must be present somewhere in the output (Mechrez et al. 2018).
         With ``class_guidance`` w > 0, D's class head h also learns the class of the real images,
         D += w·CE(h(A(y)), c), and G is asked to be recognised as its input's class, G += w·CE(h(A(G(x))), c)
         (AC-GAN, Odena et al. 2017, with the classifier trained on real images only): a generator that is
@@ -279,6 +281,9 @@ class TranslatorTraining:
             texture = cfg.get("texture", 0.0)
             if texture:
                 loss_g = loss_g + texture * texture_loss(fake, y, self.texture_bank)
+            contextual = cfg.get("contextual", 0.0)
+            if contextual:
+                loss_g = loss_g + contextual * contextual_loss(fake, y, self.texture_bank)
             nce = cfg.get("nce", 0.0)
             if nce:
                 with self._autocast():
