@@ -146,6 +146,16 @@ def test_r1_penalty_on_a_linear_discriminator():
     assert float(r1_penalty(logits, real)) == pytest.approx(0.5 * 9 * 48)
 
 
+def test_r1_penalty_reads_the_mean_patch_logit():
+    """Patch logits that all repeat one image-wide logit cost what that logit costs alone, however many there are:
+    the weight means the same at any image size."""
+    real = torch.rand(2, 3, 4, 4).requires_grad_(True)
+    logit = (3.0 * real).sum(dim=(1, 2, 3))
+    for patches in (1, 49, 225):
+        patch_logits = logit[:, None, None, None].expand(2, 1, patches, 1)
+        assert float(r1_penalty(patch_logits, real)) == pytest.approx(0.5 * 9 * 48)
+
+
 def batch(seed: int = 0):
     g = torch.Generator().manual_seed(seed)
     x, y = torch.rand(4, 3, 32, 32, generator=g) * 2 - 1, torch.rand(4, 3, 32, 32, generator=g) * 2 - 1

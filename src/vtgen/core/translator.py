@@ -204,7 +204,7 @@ class TranslatorTraining:
         names (:func:`vtgen.core.augment.augment_policy`: true = all, false = identity) and D(·, c) the
         projection discriminator:
         D minimises ½[L(D(A(y), c), real) + L(D(A(G(x)), c), fake)] + (r1/2)·E‖∇_y D(A(y), c)‖² (R1,
-        Mescheder et al. 2018, on the real images; the gradient of the patch logits' sum per image);
+        Mescheder et al. 2018, on the real images; the gradient of each image's mean patch logit);
         then G minimises L(D(A(G(x)), c), real) + mode_seeking·max(0, 1 − r), with
         r = mean|G(x₂ₖ) − G(x₂ₖ₊₁)| / mean|y₂ₖ − y₂ₖ₊₁| (:func:`mode_seeking_loss`: Mao et al. 2019, eq. 3,
         with the second input of the class in place of a second noise draw, clipped as in DSGAN), the gaps
@@ -338,9 +338,12 @@ def other_classes(labels: torch.Tensor, num_classes: int) -> torch.Tensor:
 
 
 def r1_penalty(real_logits: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
-    """(1/2)·E‖∇ₓ Σ D(x)‖² over the real images ``real`` (which require grad), Σ over each image's logits
-    (Mescheder et al. 2018, eq. 9, without γ); differentiable (create_graph) so D can be trained on it."""
-    (gradient,) = torch.autograd.grad(real_logits.float().sum(), real, create_graph=True)
+    """(1/2)·E‖∇ₓ D̄(x)‖² over the real images ``real`` (which require grad), D̄ the mean of each image's logits, as
+    the adversarial loss averages them (Mescheder et al. 2018, eq. 9, without γ); differentiable (create_graph)
+    so D can be trained on it. The mean keeps a weight's meaning at any image size: on the sum of a 7 x 7
+    PatchGAN's logits the same weight would act 49² = 2,401 times as strongly."""
+    per_image = real_logits.float().reshape(real_logits.shape[0], -1).mean(dim=1)
+    (gradient,) = torch.autograd.grad(per_image.sum(), real, create_graph=True)
     return 0.5 * gradient.pow(2).sum(dim=tuple(range(1, gradient.dim()))).mean()
 
 
