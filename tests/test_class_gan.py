@@ -146,6 +146,21 @@ def test_r1_penalty_on_a_linear_discriminator():
     assert float(r1_penalty(logits, real)) == pytest.approx(0.5 * 9 * 48)
 
 
+def test_r1_may_be_given_per_direction(default_params):
+    """``class_gan.r1`` is one number or one per direction; a per-direction block must name both directions."""
+    import copy
+
+    from vtgen.io.params import ParamsError, validate_params
+    params = copy.deepcopy(default_params)
+    params["translation"]["class_gan"]["r1"] = {"v2t": 240.0, "t2v": 1.0}
+    validate_params(params)
+    for direction, weight in (("v2t", 240.0), ("t2v", 1.0)):
+        assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", direction)["r1"] == weight
+    params["translation"]["class_gan"]["r1"] = {"t2v": 1.0}
+    with pytest.raises(ParamsError, match=r"translation\.class_gan\.r1"):
+        validate_params(params)
+
+
 def test_r1_penalty_reads_the_mean_patch_logit():
     """Patch logits that all repeat one image-wide logit cost what that logit costs alone, however many there are:
     the weight means the same at any image size."""
