@@ -9,7 +9,8 @@ were never fitted to the classes), and it needs no weights from outside.
 
 The term compares an output's statistics with those of a real image of its class, so its optimum is the
 class's typical texture statistics: a shift-invariant summary, which cannot pull the pixels to the class
-mean image (the collapse a pixel loss to a random partner of the class causes).
+mean image (the collapse a pixel loss to a random partner of the class causes). The contextual loss
+(``class_gan.contextual``) reads the same bank's features one by one instead of their summary.
 """
 
 from __future__ import annotations

@@ -109,7 +109,7 @@ class TranslatorTraining:
         if self.objective == "class_gan" and settings.get("nce", 0.0):
             self.nce_projection = PatchProjection([self.generator.feature_width(level) for level in self.nce_levels]
                                                   ).to(self.device).train()
-        # class_gan's texture: the fixed random filter bank whose feature covariances compare an output with a real image
+        # class_gan's texture and contextual terms: the fixed random filter bank whose features compare an output with a real image
         self.texture_bank = (RandomFilterBank().to(self.device) if self.objective == "class_gan"
                              and (settings.get("texture", 0.0) or settings.get("contextual", 0.0)) else None)
         g_parameters = list(self.generator.parameters())
