@@ -113,6 +113,7 @@ def checked_latent(latent: int) -> int:
         raise ValueError(f"latent must be an integer >= 0, got {latent!r}")
     return latent
 
+
 def check_batchnorm_values(batch: int, map_shapes: list[tuple[int, int]], network: str, remedy: str) -> None:
     """Raise ValueError when a training batch of ``batch`` images leaves a BatchNorm layer one value per
     channel (``batch * H * W == 1`` for one of ``map_shapes``, the ``(H, W)`` each BatchNorm normalises):

@@ -108,10 +108,10 @@ def contextual_loss(outputs: torch.Tensor, targets: torch.Tensor, bank: RandomFi
                     levels: tuple[int, ...] = CONTEXTUAL_LEVELS) -> torch.Tensor:
     """(1/L) Σ_l mean over images of −log CX(φ_l(o), φ_l(t)) (:func:`contextual_similarity`), φ_l the ``levels`` of
     ``bank``, each read on a grid of at most :data:`CONTEXTUAL_SIDE` squared positions: each output against the
-    image of ``targets`` in its row. Where :func:`texture_loss` matches a
-    texture's summary, this asks every local feature of the real image to be present somewhere in the output, at
-    any place, so the output is built of the class's own local structures without being aligned with the image
-    (the contextual loss of Mechrez et al. 2018, on random filters in place of VGG). ``targets`` is data."""
+    image of ``targets`` in its row. Where :func:`texture_loss` matches a texture's summary, this asks every local
+    feature of the real image to be present somewhere in the output, at any place, so the output is built of the
+    class's own local structures without being aligned with the image (the contextual loss of Mechrez et al.
+    2018, on random filters in place of VGG). ``targets`` is data."""
     with torch.no_grad():
         target_features = bank(targets.detach().float())
     output_features = bank(outputs.float())
