@@ -464,6 +464,18 @@ def test_resize_upsampling_has_no_checkerboard_on_a_constant_map():
         UNetGenerator(32, 8, 4, upsample="bilinear")
 
 
+def test_resize_upsampling_keeps_a_constant_map_constant_up_to_the_border():
+    """Reflection padding: no border value the generator could draw bands along (zero padding darkens or
+    brightens the outermost row and column of a constant map)."""
+    from vtgen.core.models import resize_conv
+
+    torch.manual_seed(0)
+    with torch.no_grad():
+        out = resize_conv(4, 2, bias=False)(torch.ones(1, 4, 5, 5))
+    assert out.shape == (1, 2, 10, 10)
+    assert (out - out[..., :1, :1]).abs().max() < 1e-6
+
+
 GUIDE = {"size": 32, "width": 0.25, "epochs": 8, "batch_size": 8, "lr": 1e-3}
 
 

@@ -68,9 +68,11 @@ UPSAMPLINGS = ("transpose", "resize")
 
 def resize_conv(in_channels: int, out_channels: int, bias: bool) -> nn.Sequential:
     """Nearest-neighbour 2x upsampling, then a 3x3 convolution: ``H x W`` to ``2H x 2W`` without the
-    uneven kernel overlap that gives a stride-2 transposed convolution its checkerboard (Odena et al. 2016)."""
+    uneven kernel overlap that gives a stride-2 transposed convolution its checkerboard (Odena et al. 2016).
+    The convolution pads by reflection: zero padding gave the generator a border it drew saturated bands
+    along (benchmarks/README.md, Tenth and Eleventh rounds)."""
     return nn.Sequential(nn.Upsample(scale_factor=2, mode="nearest"),
-                         nn.Conv2d(in_channels, out_channels, 3, padding=1, bias=bias))
+                         nn.Conv2d(in_channels, out_channels, 3, padding=1, padding_mode="reflect", bias=bias))
 
 
 def init_weights(module: nn.Module) -> None:
