@@ -204,6 +204,12 @@ def build_parser() -> argparse.ArgumentParser:
     studies_report.add_argument("--experiments", required=True, help="folder of `vtgen study --kind experiments` outputs")
     studies_report.add_argument("--frontier", required=True, help="folder written by `vtgen frontier`")
     studies_report.add_argument("--stability", required=True, help="folder written by `vtgen stability`")
+    _add_tool_commands(sub)
+    return parser
+
+
+def _add_tool_commands(sub) -> None:
+    """The commands that are not pipeline stages: workflow, experiments and translate."""
     workflow = sub.add_parser("workflow", help="write dvc.yaml (and, with --studies, workflow/studies/dvc.yaml) "
                               "from the stage table")
     workflow.add_argument("--params", default="params.yaml")
@@ -234,7 +240,6 @@ def build_parser() -> argparse.ArgumentParser:
                            help="the class of every input, for a model conditioned on the class (see its train.json)")
     translate.add_argument("--params", default=None, help="params file for translation.device (default: CPU)")
     translate.set_defaults(func=_translate)
-    return parser
 
 
 PIPELINE_COMMANDS = {"render", "ingest", "roi", "pairs", "train", "generate", "score", "classify", "report", "study",

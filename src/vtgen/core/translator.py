@@ -238,16 +238,31 @@ class TranslatorTraining:
         ``generator`` 'resnet' trains :class:`vtgen.core.models.ResnetGenerator` in place of the U-Net.
         ``loss_g_l1`` is |G(x) − y| against the random partner: logged, never trained on.
         """
-        cfg = self.settings
-        policy = augment_policy(cfg.get("diffaugment", True))
+        policy = augment_policy(self.settings.get("diffaugment", True))
         augment = lambda images: diff_augment(images, policy)  # noqa: E731 (an empty policy is the identity)
-        r1, seeking = cfg.get("r1", 0.0), cfg.get("mode_seeking", 0.0)
-        guidance = cfg.get("class_guidance", 0.0)
         labels = labels.to(self.device)
         with self._autocast():
             fake = self.generator(x)
+        loss_d = self._class_discriminator_step(y, fake, labels, augment)
+        self.discriminator.requires_grad_(False)
+        try:
+            with self._autocast():
+                d_fake, class_fake = self.discriminator.judge(augment(fake), labels)
+            loss_g_gan = self._loss(d_fake, True)
+            loss_g = self._class_generator_loss(loss_g_gan, x, y, fake, labels, class_fake, augment)
+            self.opt_g.zero_grad(set_to_none=True)
+            loss_g.backward()
+            self.opt_g.step()
+        finally:
+            self.discriminator.requires_grad_(True)
+        loss_g_l1 = F.l1_loss(fake.detach().float(), y)
+        return dict(zip(LOSS_NAMES, (loss_d.detach(), loss_g_gan.detach(), loss_g_l1)))
+
+    def _class_discriminator_step(self, y, fake, labels, augment) -> torch.Tensor:
+        """:meth:`class_step`'s discriminator update (adversarial, R1, mismatch and class-head terms); returns its loss."""
+        cfg = self.settings
+        r1, guidance, mismatch = cfg.get("r1", 0.0), cfg.get("class_guidance", 0.0), cfg.get("mismatch", 0.0)
         real = y.detach().requires_grad_(bool(r1))
-        mismatch = cfg.get("mismatch", 0.0)
         with self._autocast():
             real_features = self.discriminator.features(augment(real))
             d_real = self.discriminator.patch_logits(real_features, labels)
@@ -266,41 +281,34 @@ class TranslatorTraining:
         self.opt_d.zero_grad(set_to_none=True)
         loss_d.backward()
         self.opt_d.step()
-        self.discriminator.requires_grad_(False)
-        try:
+        return loss_d
+
+    def _class_generator_loss(self, loss_g_gan, x, y, fake, labels, class_fake, augment) -> torch.Tensor:
+        """:meth:`class_step`'s generator objective: ``loss_g_gan`` plus each weighted term, added in a fixed order."""
+        cfg = self.settings
+        seeking, guidance = cfg.get("mode_seeking", 0.0), cfg.get("class_guidance", 0.0)
+        loss_g = loss_g_gan + seeking * mode_seeking_loss(fake.float(), y, cfg.get("mode_seeking_pool", 1)) \
+            if seeking else loss_g_gan
+        if guidance:
+            loss_g = loss_g + guidance * F.cross_entropy(class_fake.float(), labels)
+        statistics, texture, contextual = (cfg.get(k, 0.0) for k in ("statistics", "texture", "contextual"))
+        if statistics:
+            loss_g = loss_g + statistics * statistics_loss(fake.float(), y)
+        if texture:
+            loss_g = loss_g + texture * texture_loss(fake, y, self.texture_bank)
+        if contextual:
+            loss_g = loss_g + contextual * contextual_loss(fake, y, self.texture_bank)
+        nce = cfg.get("nce", 0.0)
+        if nce:
             with self._autocast():
-                d_fake, class_fake = self.discriminator.judge(augment(fake), labels)
-            loss_g_gan = self._loss(d_fake, True)
-            pool = cfg.get("mode_seeking_pool", 1)
-            loss_g = loss_g_gan + seeking * mode_seeking_loss(fake.float(), y, pool) if seeking else loss_g_gan
-            if guidance:
-                loss_g = loss_g + guidance * F.cross_entropy(class_fake.float(), labels)
-            statistics = cfg.get("statistics", 0.0)
-            if statistics:
-                loss_g = loss_g + statistics * statistics_loss(fake.float(), y)
-            texture = cfg.get("texture", 0.0)
-            if texture:
-                loss_g = loss_g + texture * texture_loss(fake, y, self.texture_bank)
-            contextual = cfg.get("contextual", 0.0)
-            if contextual:
-                loss_g = loss_g + contextual * contextual_loss(fake, y, self.texture_bank)
-            nce = cfg.get("nce", 0.0)
-            if nce:
-                with self._autocast():
-                    keys = self.generator.encode(x, self.nce_levels)
-                    queries = self.generator.encode(torch.cat([fake, x[:, 3:]], dim=1), self.nce_levels)
-                loss_g = loss_g + nce * patch_nce_loss(queries, keys, self.nce_projection)
-            semantic = cfg.get("semantic", 0.0)
-            if semantic:
-                with self._autocast():
-                    loss_g = loss_g + semantic * recognition_loss(self.guide, augment(fake), labels)
-            self.opt_g.zero_grad(set_to_none=True)
-            loss_g.backward()
-            self.opt_g.step()
-        finally:
-            self.discriminator.requires_grad_(True)
-        loss_g_l1 = F.l1_loss(fake.detach().float(), y)
-        return dict(zip(LOSS_NAMES, (loss_d.detach(), loss_g_gan.detach(), loss_g_l1)))
+                keys = self.generator.encode(x, self.nce_levels)
+                queries = self.generator.encode(torch.cat([fake, x[:, 3:]], dim=1), self.nce_levels)
+            loss_g = loss_g + nce * patch_nce_loss(queries, keys, self.nce_projection)
+        semantic = cfg.get("semantic", 0.0)
+        if semantic:
+            with self._autocast():
+                loss_g = loss_g + semantic * recognition_loss(self.guide, augment(fake), labels)
+        return loss_g
 
     def generator_norm(self) -> float:
         """L2 norm of all generator parameters, ‖θ_G‖₂ = sqrt(Σ θ²) (a host sync)."""
