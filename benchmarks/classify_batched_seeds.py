@@ -5,9 +5,12 @@ size and width, batch 32, fp32, torch threads 1) for S seeds: S separate models 
 the other (what the stage does) against one model holding the S networks side by side (every
 convolution with ``groups=S`` over the S seeds' stacked channels, every linear layer one batched
 matrix product, one Adam over all). The two do the same arithmetic per seed; only the kernels
-differ. Prints a markdown table of seconds per step (median of ``--steps``, interleaved rounds).
+differ. A third way stacks the S models' parameters and buffers and maps one model's step over them
+(``torch.func.vmap`` of ``functional_call``, dropout drawn per seed). ``--precision bf16`` runs every
+way under bf16 autocast (what ``classify.precision: auto`` picks on a CPU with AVX512-BF16 or AMX).
+Prints a markdown table of seconds per step (median of ``--steps``, interleaved rounds).
 
-    python benchmarks/classify_batched_seeds.py --seeds 3 --steps 20 --rounds 3
+    python benchmarks/classify_batched_seeds.py --seeds 3 --steps 20 --rounds 3 --precision bf16
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import torch
 import torch.nn.functional as F
 import yaml
 from torch import nn
+from torch.func import functional_call, stack_module_state, vmap
 
 from vtgen.core.classifier import BASE_CHANNELS, BASE_HIDDEN, MIN_CHANNELS, AlexNet, feature_side, first_conv
 
@@ -62,11 +66,19 @@ class GroupedAlexNet(nn.Module):
         return torch.bmm(h, self.fc8)
 
 
+class ScaledAlexNet(AlexNet):
+    """AlexNet whose ``forward`` takes scaled tiles (``scaled_forward``), for ``functional_call``."""
+
+    def forward(self, scaled: torch.Tensor) -> torch.Tensor:
+        return self.scaled_forward(scaled)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--precision", choices=["fp32", "bf16"], default="fp32")
     args = parser.parse_args()
     cfg = yaml.safe_load((REPO / "params.yaml").read_text())["classify"]
     torch.set_num_threads(1)
@@ -81,33 +93,52 @@ def main() -> None:
     labels = [torch.randint(0, classes, (batch,)) for _ in range(seeds)]
     stacked = torch.cat(images, dim=1).contiguous(memory_format=torch.channels_last)
     stacked_labels = torch.cat(labels)
+    mapped_params, mapped_buffers = stack_module_state([ScaledAlexNet(classes, size, width) for _ in range(seeds)])
+    template = ScaledAlexNet(classes, size, width).to("meta")
+    mapped_optimiser = torch.optim.Adam(list(mapped_params.values()), lr=cfg["lr"])
+    per_seed_images, per_seed_labels = torch.stack(images), torch.stack(labels)
+
+    def seed_loss(params, buffers, x, y):
+        return F.cross_entropy(functional_call(template, (params, buffers), (x,)), y)
+
+    mapped_loss = vmap(seed_loss, randomness="different")
+    autocast = torch.autocast("cpu", dtype=torch.bfloat16, enabled=args.precision == "bf16")
 
     def step_separate():
         for model, optimiser, x, y in zip(separate, optimisers, images, labels):
-            loss = F.cross_entropy(model.scaled_forward(x), y)
+            with autocast:
+                loss = F.cross_entropy(model.scaled_forward(x), y)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
 
     def step_grouped():
         # the sum over seeds of each seed's mean loss: each seed's gradient is its own
-        loss = F.cross_entropy(grouped(stacked).reshape(seeds * batch, classes), stacked_labels) * seeds
+        with autocast:
+            loss = F.cross_entropy(grouped(stacked).reshape(seeds * batch, classes).float(), stacked_labels) * seeds
         grouped_optimiser.zero_grad(set_to_none=True)
         loss.backward()
         grouped_optimiser.step()
 
-    times = {"separate models, one after the other": [], "one grouped model": []}
+    def step_mapped():
+        with autocast:
+            loss = mapped_loss(mapped_params, mapped_buffers, per_seed_images, per_seed_labels).sum()
+        mapped_optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        mapped_optimiser.step()
+
+    times = {"separate models, one after the other": [], "one grouped model": [], "vmap over stacked models": []}
     for _ in range(args.rounds):
-        for name, step in zip(times, (step_separate, step_grouped)):
+        for name, step in zip(times, (step_separate, step_grouped, step_mapped)):
             for _ in range(3):
                 step()
             for _ in range(args.steps):
                 started = time.perf_counter()
                 step()
                 times[name].append(time.perf_counter() - started)
-    print(f"{seeds} seeds, {size} px, width {width}, batch {batch} per seed, fp32, 1 torch thread; load average "
-          f"(1 min) {os.getloadavg()[0]:.1f}; `python benchmarks/classify_batched_seeds.py --seeds {seeds} "
-          f"--steps {args.steps} --rounds {args.rounds}`\n")
+    print(f"{seeds} seeds, {size} px, width {width}, batch {batch} per seed, {args.precision}, 1 torch thread; load "
+          f"average (1 min) {os.getloadavg()[0]:.1f}; `python benchmarks/classify_batched_seeds.py --seeds {seeds} "
+          f"--steps {args.steps} --rounds {args.rounds} --precision {args.precision}`\n")
     print("| training step of all seeds | median s | images/s |")
     print("|---|---:|---:|")
     for name, values in times.items():

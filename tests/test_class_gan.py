@@ -476,6 +476,39 @@ def test_resize_upsampling_keeps_a_constant_map_constant_up_to_the_border():
     assert (out - out[..., :1, :1]).abs().max() < 1e-6
 
 
+def test_reflect_padding_gives_the_encoder_no_border_on_a_constant_image(tmp_path):
+    """``padding: reflect``: every encoder level above the bottleneck maps a constant image to a constant map
+    (zero padding makes the border positions differ: the frame the generator drew bands along), with the same
+    parameters, and the setting travels with the saved generator."""
+    from vtgen.core.models import build_generator, UNetGenerator
+    from vtgen.io.checkpoints import load_translator, save_generator
+
+    x = torch.full((1, 3, 32, 32), 0.7)
+    spread = {}
+    for padding in ("zeros", "reflect"):
+        torch.manual_seed(0)
+        generator = UNetGenerator(32, 8, 4, padding=padding).eval()
+        with torch.no_grad():
+            maps = generator.encode(x, tuple(range(generator.depth - 1)))
+        spread[padding] = [float((m - m[..., :1, :1]).abs().max()) for m in maps]
+        if padding == "zeros":
+            zeros_state = generator.state_dict()
+    assert max(spread["reflect"]) < 1e-5
+    assert min(spread["zeros"][:3]) > 1e-3
+    assert all(torch.equal(zeros_state[k], v) for k, v in generator.state_dict().items())  # same draws
+    assert build_generator({"size": 32, "ngf": 8, "kernel": 4, "padding": "reflect"}).padding == "reflect"
+    with pytest.raises(ValueError, match="padding must be"):
+        UNetGenerator(32, 8, 4, padding="circular")
+    settings = objective_settings(dict(SETTINGS), {"preset": "fast", "class_gan": dict(
+        {k: v for k, v in CLASS_GAN.items() if k != "objective"}, padding="reflect")}, "class_gan")
+    torch.manual_seed(0)
+    training = TranslatorTraining(settings, "cpu", num_classes=2)
+    save_generator(tmp_path / "generator.pt", training.generator, settings, "v2t", "all")
+    loaded, _ = load_translator(tmp_path)
+    assert loaded.padding == "reflect"
+    assert all(conv[0].padding_mode == "reflect" for conv in loaded.encoder[:-1])
+
+
 GUIDE = {"size": 32, "width": 0.25, "epochs": 8, "batch_size": 8, "lr": 1e-3}
 
 

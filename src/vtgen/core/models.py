@@ -49,10 +49,11 @@ def resampling_padding(kernel: int) -> tuple[int, int]:
     return (1, 0) if kernel == 4 else (2, 1)
 
 
-def downsampling_conv(in_channels: int, out_channels: int, kernel: int, bias: bool) -> nn.Conv2d:
-    """Stride-2 convolution that maps ``H x W`` to ``H/2 x W/2`` for even sizes."""
+def downsampling_conv(in_channels: int, out_channels: int, kernel: int, bias: bool,
+                      padding_mode: str = "zeros") -> nn.Conv2d:
+    """Stride-2 convolution that maps ``H x W`` to ``H/2 x W/2`` for even sizes, padding with ``padding_mode``."""
     padding, _ = resampling_padding(kernel)
-    return nn.Conv2d(in_channels, out_channels, kernel, stride=2, padding=padding, bias=bias)
+    return nn.Conv2d(in_channels, out_channels, kernel, stride=2, padding=padding, bias=bias, padding_mode=padding_mode)
 
 
 def upsampling_conv(in_channels: int, out_channels: int, kernel: int, bias: bool) -> nn.ConvTranspose2d:
@@ -64,6 +65,7 @@ def upsampling_conv(in_channels: int, out_channels: int, kernel: int, bias: bool
 
 
 UPSAMPLINGS = ("transpose", "resize")
+PADDINGS = ("zeros", "reflect")  # the U-Net encoder's: pix2pix's zeros, or by reflection
 
 
 def resize_conv(in_channels: int, out_channels: int, bias: bool) -> nn.Sequential:
@@ -140,7 +142,9 @@ class UNetGenerator(nn.Module):
     channels (BicycleGAN's "add to input", Zhu et al. 2017), so one input can give several outputs;
     :meth:`forward` draws z from torch's global generator unless it is given (N x k). ``in_channels``
     counts the image and conditioning channels only. ``upsample`` 'resize' doubles each decoder level by
-    :func:`resize_conv` instead of a transposed convolution ('transpose', pix2pix's).
+    :func:`resize_conv` instead of a transposed convolution ('transpose', pix2pix's). ``padding`` 'reflect' pads
+    the encoder's convolutions by reflection where their input is larger than 2 px (the bottleneck's keeps zeros),
+    so that no level sees a zero frame that tells it where the border is ('zeros', pix2pix's).
     """
 
     def __init__(
@@ -154,11 +158,14 @@ class UNetGenerator(nn.Module):
         skips: int | None = None,
         latent: int = 0,
         upsample: str = "transpose",
+        padding: str = "zeros",
     ) -> None:
         super().__init__()
         if upsample not in UPSAMPLINGS:
             raise ValueError(f"upsample must be one of {UPSAMPLINGS}, got {upsample!r}")
-        self.upsample = upsample
+        if padding not in PADDINGS:
+            raise ValueError(f"padding must be one of {PADDINGS}, got {padding!r}")
+        self.upsample, self.padding = upsample, padding
         up = (lambda i, o, bias: upsampling_conv(i, o, kernel, bias)) if upsample == "transpose" else resize_conv
         self.latent = checked_latent(latent)
         check_kernel(kernel)
@@ -178,16 +185,14 @@ class UNetGenerator(nn.Module):
         encoder: list[nn.Module] = []
         for level in range(depth):
             source = in_channels + latent if level == 0 else widths[level - 1]
+            mode = padding if size >> level > 2 else "zeros"  # the input side of this level
+            down = lambda bias: downsampling_conv(source, widths[level], kernel, bias, mode)  # noqa: E731
             if level == 0:
-                block = nn.Sequential(downsampling_conv(source, widths[0], kernel, bias=True), nn.LeakyReLU(0.2))
+                block = nn.Sequential(down(True), nn.LeakyReLU(0.2))
             elif level == depth - 1:
-                block = nn.Sequential(downsampling_conv(source, widths[level], kernel, bias=True), nn.ReLU())
+                block = nn.Sequential(down(True), nn.ReLU())
             else:
-                block = nn.Sequential(
-                    downsampling_conv(source, widths[level], kernel, bias=False),
-                    nn.BatchNorm2d(widths[level]),
-                    nn.LeakyReLU(0.2),
-                )
+                block = nn.Sequential(down(False), nn.BatchNorm2d(widths[level]), nn.LeakyReLU(0.2))
             encoder.append(block)
         self.encoder = nn.ModuleList(encoder)
 
@@ -369,15 +374,15 @@ class ResnetGenerator(nn.Module):
 
 def build_generator(settings: dict, in_channels: int = 3) -> nn.Module:
     """The generator ``settings`` name (``generator``: 'unet', the default, or 'resnet'), from its size, ngf,
-    latent and (the U-Net's) kernel, skips and upsample keys. The ResNet always resizes, so it ignores
-    ``upsample``; it has no skip connections, so ``skips`` other than all (None) is refused. Raises ValueError for
+    latent and (the U-Net's) kernel, skips, upsample and padding keys. The ResNet always resizes and reflects, so it
+    ignores ``upsample`` and ``padding``; it has no skip connections, so ``skips`` other than all (None) is refused. Raises ValueError for
     that and for an unknown kind."""
     kind = settings.get("generator", "unet")
     latent = settings.get("latent", 0)
     if kind == "unet":
         return UNetGenerator(settings["size"], settings["ngf"], settings["kernel"], in_channels=in_channels,
                              skips=settings.get("skips"), latent=latent,
-                             upsample=settings.get("upsample", "transpose"))
+                             upsample=settings.get("upsample", "transpose"), padding=settings.get("padding", "zeros"))
     if kind == "resnet":
         if settings.get("skips") is not None:
             raise ValueError(f"class_gan.skips ({settings['skips']}) is a U-Net setting: set it to 'all' with "

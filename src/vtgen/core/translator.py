@@ -73,7 +73,7 @@ class TranslatorTraining:
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
     ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``statistics``, ``class_guidance``, ``skips``,
-    ``latent``, ``upsample``, ``semantic``, ``mismatch``, ``nce``, ``texture``, ``contextual`` (see :meth:`class_step`), ``d_lr_ratio`` (D's learning rate over
+    ``latent``, ``upsample``, ``padding``, ``semantic``, ``mismatch``, ``nce``, ``texture``, ``contextual`` (see :meth:`class_step`), ``d_lr_ratio`` (D's learning rate over
     G's) and ``generator`` (:func:`vtgen.core.models.build_generator`: unet, the default, or resnet), and needs ``num_classes``; ``semantic`` > 0 needs ``guide``, a classifier of the target modality over the
     same class indices (frozen here: eval mode, no gradients for its weights).
     """
@@ -234,7 +234,8 @@ class TranslatorTraining:
         With ``nce`` w > 0, G += w·:func:`vtgen.core.patchnce.patch_nce_loss` between the generator's encoder features
         of G(x) and of x (levels :data:`NCE_LEVELS`; PatchNCE, Park et al. 2020): each output patch keeps the structure
         of the input patch at its place, with no pixel loss to a partner.
-        ``upsample`` 'resize' builds G's decoder from resize convolutions (no checkerboard without a pixel loss to hide it).
+        ``upsample`` 'resize' builds G's decoder from resize convolutions (no checkerboard without a pixel loss to hide it);
+        ``padding`` 'reflect' pads G's encoder by reflection (no zero frame to draw border bands from).
         ``generator`` 'resnet' trains :class:`vtgen.core.models.ResnetGenerator` in place of the U-Net.
         ``loss_g_l1`` is |G(x) − y| against the random partner: logged, never trained on.
         """
