@@ -186,13 +186,13 @@ class UNetGenerator(nn.Module):
         for level in range(depth):
             source = in_channels + latent if level == 0 else widths[level - 1]
             mode = padding if size >> level > 2 else "zeros"  # the input side of this level
-            down = lambda bias: downsampling_conv(source, widths[level], kernel, bias, mode)  # noqa: E731
+            conv = downsampling_conv(source, widths[level], kernel, level in (0, depth - 1), mode)
             if level == 0:
-                block = nn.Sequential(down(True), nn.LeakyReLU(0.2))
+                block = nn.Sequential(conv, nn.LeakyReLU(0.2))
             elif level == depth - 1:
-                block = nn.Sequential(down(True), nn.ReLU())
+                block = nn.Sequential(conv, nn.ReLU())
             else:
-                block = nn.Sequential(down(False), nn.BatchNorm2d(widths[level]), nn.LeakyReLU(0.2))
+                block = nn.Sequential(conv, nn.BatchNorm2d(widths[level]), nn.LeakyReLU(0.2))
             encoder.append(block)
         self.encoder = nn.ModuleList(encoder)
 
