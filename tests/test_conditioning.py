@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from conftest import TINY_MODEL
 from vtgen.core.conditioning import Conditioning, typical_images
@@ -157,8 +158,9 @@ def test_translate_files_needs_the_class_for_a_class_conditioned_model(tmp_path)
 
 
 def test_inferred_conditioning_reads_the_class_from_the_input_and_survives_the_model_file(tmp_path):
-    """V2T-like pairs where the photo's colour tells the class: the inferred maps of a red input say red
-    (2p - 1 near 1 on its class), whatever label is passed; the model file rebuilds the same classifier, and
+    """V2T-like pairs where the photo's colour tells the class: translating, the inferred maps of a red input
+    are the one-hot maps of red (the classifier's most probable class), whatever label the caller has; training
+    (labels given) maps the labels as `class` does; the model file rebuilds the same classifier, and
     `vtgen translate` needs no --class for such a model."""
     import pandas as pd
     from PIL import Image
@@ -176,11 +178,15 @@ def test_inferred_conditioning_reads_the_class_from_the_input_and_survives_the_m
     assert not conditioning.needs_labels
     x = data.inputs.float() / 127.5 - 1
     maps = conditioning.condition(x, None)[:, 3:, 0, 0]
-    told_wrong = conditioning.condition(x, torch.zeros(len(x), dtype=torch.int64))[:, 3:, 0, 0]
-    assert torch.equal(maps, told_wrong)  # labels are not read
     truth = torch.tensor([conditioning.classes.index(c) for c in data.classes])
-    assert (maps.argmax(dim=1) == truth).float().mean() == 1.0
-    assert torch.allclose(maps.sum(dim=1), torch.full((len(x),), 2.0 - len(conditioning.classes)), atol=1e-5)
+    assert torch.equal(maps, F.one_hot(truth, 2).float() * 2 - 1)  # exactly the one-hot maps of the class read
+    wrong = 1 - truth
+    told = conditioning.condition(x, wrong)[:, 3:, 0, 0]
+    assert torch.equal(told, F.one_hot(wrong, 2).float() * 2 - 1)  # training: the labels, as `class`
+    probe = UNetGenerator(32, 4, 4, in_channels=3 + conditioning.extra_channels).eval()
+    inputs = data.inputs[:6]
+    assert torch.equal(translate(probe, inputs, conditioning=conditioning, labels=wrong[:6]),
+                       translate(probe, inputs, conditioning=conditioning))  # translating never reads a label
 
     generator = UNetGenerator(32, 4, 4, in_channels=3 + conditioning.extra_channels)
     (tmp_path / "model").mkdir()

@@ -9,10 +9,11 @@ of input images and their class indices into the generator's input, the *conditi
   (a one-hot map, as in conditional GANs, Mirza & Osindero 2014);
 * ``reference`` - the class maps plus one real image of the target modality of that class, the
   appearance reference of VisGel (Li et al. 2019) and Gao et al. 2023;
-* ``inferred`` - the class maps of the class a classifier of the *input* modality reads from the input
-  itself: its softmax probabilities p, as 2p - 1. The generator is not told the class; on class-paired
-  data, where the class is all that links a photo to a touch, it is told what its input says, so its
-  output can be no more recognisable than its input is (issue 24, goal 3).
+* ``inferred`` - trained as ``class`` (the training pairs' classes are known), but when translating the
+  generator is told the class a classifier of the *input* modality reads from the input itself (its most
+  probable class). It is never told the true class of what it translates; on class-paired data, where the
+  class is all that links a photo to a touch, it is told what its input says, so its output can be no
+  more recognisable than its input is (issue 24, goal 3).
 
 The discriminator sees the same condition stacked with the real or generated image
 (:func:`vtgen.core.models.conditional_pair`), so both networks know what was asked for.
@@ -61,7 +62,7 @@ class Conditioning:
 
     @property
     def needs_labels(self) -> bool:
-        """Whether :meth:`condition` needs each image's class (``inferred`` reads it from the image)."""
+        """Whether translating needs each image's class (``inferred`` reads it from the image)."""
         return self.kind in ("class", "reference")
 
     @property
@@ -84,16 +85,18 @@ class Conditioning:
         """``x`` (N x 3 x S x S in [-1, 1]) with this conditioning's channels appended: N x (3 + extra) x S x S.
 
         Class maps are 1 (the image's class) or -1 (the others), in the images' range; a reference is
-        resized (area) to S when its side differs. ``inferred`` ignores ``labels`` (None allowed): its maps
-        are 2p - 1, p the classifier's softmax on ``x`` (back on the 0-255 scale, resized to its side).
+        resized (area) to S when its side differs. ``inferred`` with ``labels`` (training) maps them as
+        ``class`` does; with None (translating) it maps the class the classifier reads from ``x``, the argmax of
+        :meth:`probabilities`: the same one-hot maps the generator was trained on, never a softer mixture.
         """
         if self.kind == "none":
             return x
         n, _, height, width = x.shape
-        if self.kind == "inferred":
-            onehot = self.probabilities(x).to(x.dtype) * 2 - 1
-        else:
-            onehot = F.one_hot(labels.to(x.device), len(self.classes)).to(x.dtype) * 2 - 1
+        if labels is None:
+            if self.kind != "inferred":
+                raise ValueError(f"conditioning '{self.kind}' needs each image's class")
+            labels = self.probabilities(x).argmax(dim=1)
+        onehot = F.one_hot(labels.to(x.device), len(self.classes)).to(x.dtype) * 2 - 1
         parts = [x, onehot[:, :, None, None].expand(n, len(self.classes), height, width)]
         if self.kind == "reference":
             refs = self.references.to(x.device)[labels.to(x.device)].float() / 127.5 - 1.0

@@ -54,7 +54,7 @@ def translate(generator: torch.nn.Module, images: torch.Tensor, batch_size: int 
     for i in range(0, len(images), batch_size):
         x = to_model_range(images[i:i + batch_size]).to(device)
         if conditioning.kind != "none":
-            x = conditioning.condition(x, None if labels is None else labels[i:i + batch_size])
+            x = conditioning.condition(x, labels[i:i + batch_size] if conditioning.needs_labels else None)
         z = None if codes is None else codes[i:i + batch_size].to(device)
         out.append(to_uint8(generator(x, z)).cpu())
     return torch.cat(out) if out else images.clone()
