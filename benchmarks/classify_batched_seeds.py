@@ -6,7 +6,8 @@ the other (what the stage does) against one model holding the S networks side by
 convolution with ``groups=S`` over the S seeds' stacked channels, every linear layer one batched
 matrix product, one Adam over all). The two do the same arithmetic per seed; only the kernels
 differ. A third way stacks the S models' parameters and buffers and maps one model's step over them
-(``torch.func.vmap`` of ``functional_call``, dropout drawn per seed). ``--precision bf16`` runs every
+(``torch.func.vmap`` of ``functional_call``, dropout drawn per seed). A fourth compiles each separate model's
+forward with ``torch.compile`` (inductor; its compile seconds are printed, not counted in the step). ``--precision bf16`` runs every
 way under bf16 autocast (what ``classify.precision: auto`` picks on a CPU with AVX512-BF16 or AMX).
 Prints a markdown table of seconds per step (median of ``--steps``, interleaved rounds).
 
@@ -102,6 +103,9 @@ def main() -> None:
         return F.cross_entropy(functional_call(template, (params, buffers), (x,)), y)
 
     mapped_loss = vmap(seed_loss, randomness="different")
+    compiled_models = [AlexNet(classes, size, width) for _ in range(seeds)]
+    compiled_optimisers = [torch.optim.Adam(m.parameters(), lr=cfg["lr"]) for m in compiled_models]
+    compiled_forwards = [torch.compile(m.scaled_forward) for m in compiled_models]
     autocast = torch.autocast("cpu", dtype=torch.bfloat16, enabled=args.precision == "bf16")
 
     def step_separate():
@@ -127,9 +131,21 @@ def main() -> None:
         loss.backward()
         mapped_optimiser.step()
 
-    times = {"separate models, one after the other": [], "one grouped model": [], "vmap over stacked models": []}
+    def step_compiled():
+        for forward, optimiser, x, y in zip(compiled_forwards, compiled_optimisers, images, labels):
+            with autocast:
+                loss = F.cross_entropy(forward(x), y)
+            optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            optimiser.step()
+
+    started = time.perf_counter()
+    step_compiled()  # the first call compiles (forward and backward graphs)
+    compile_seconds = time.perf_counter() - started
+    times = {"separate models, one after the other": [], "one grouped model": [], "vmap over stacked models": [],
+             "separate models, torch.compile": []}
     for _ in range(args.rounds):
-        for name, step in zip(times, (step_separate, step_grouped, step_mapped)):
+        for name, step in zip(times, (step_separate, step_grouped, step_mapped, step_compiled)):
             for _ in range(3):
                 step()
             for _ in range(args.steps):
@@ -144,6 +160,7 @@ def main() -> None:
     for name, values in times.items():
         median = statistics.median(values)
         print(f"| {name} | {median:.4f} | {seeds * batch / median:.0f} |")
+    print(f"\ntorch.compile: first step (compiling {seeds} models) {compile_seconds:.1f} s")
 
 
 if __name__ == "__main__":
