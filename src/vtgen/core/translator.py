@@ -74,7 +74,7 @@ class TranslatorTraining:
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
     ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``statistics``, ``class_guidance``, ``skips``,
     ``latent``, ``upsample``, ``padding``, ``semantic``, ``mismatch``, ``nce``, ``texture``, ``contextual`` (see :meth:`class_step`), ``d_lr_ratio`` (D's learning rate over
-    G's) and ``generator`` (:func:`vtgen.core.models.build_generator`: unet, the default, or resnet), and needs ``num_classes``; ``semantic`` > 0 needs ``guide``, a classifier of the target modality over the
+    G's), ``ema`` (:meth:`update_average`: the generator a run yields is the average of its weights) and ``generator`` (:func:`vtgen.core.models.build_generator`: unet, the default, or resnet), and needs ``num_classes``; ``semantic`` > 0 needs ``guide``, a classifier of the target modality over the
     same class indices (frozen here: eval mode, no gradients for its weights).
     """
 
@@ -112,6 +112,11 @@ class TranslatorTraining:
         # class_gan's texture and contextual terms: the fixed random filter bank whose features compare an output with a real image
         self.texture_bank = (RandomFilterBank().to(self.device) if self.objective == "class_gan"
                              and (settings.get("texture", 0.0) or settings.get("contextual", 0.0)) else None)
+        # class_gan's ema: an exponential moving average of G's weights, the generator the run yields
+        self.ema_decay = float(settings.get("ema", 0.0)) if self.objective == "class_gan" else 0.0
+        self.average, self.average_updates = None, 0
+        if self.ema_decay:
+            self.average = copy.deepcopy(self.generator).requires_grad_(False)
         g_parameters = list(self.generator.parameters())
         if self.nce_projection is not None:
             g_parameters += list(self.nce_projection.parameters())
@@ -256,6 +261,8 @@ class TranslatorTraining:
             self.opt_g.step()
         finally:
             self.discriminator.requires_grad_(True)
+        if self.average is not None:
+            self.update_average()
         loss_g_l1 = F.l1_loss(fake.detach().float(), y)
         return dict(zip(LOSS_NAMES, (loss_d.detach(), loss_g_gan.detach(), loss_g_l1)))
 
@@ -311,18 +318,41 @@ class TranslatorTraining:
                 loss_g = loss_g + semantic * recognition_loss(self.guide, augment(fake), labels)
         return loss_g
 
+    @property
+    def output_generator(self) -> nn.Module:
+        """The generator a run yields and is validated on: the weight average with ``ema`` > 0, else G itself."""
+        return self.average if self.average is not None else self.generator
+
+    @torch.no_grad()
+    def update_average(self) -> None:
+        """One step of the weight average after G's update t (counted from 1):
+        θ̄ ← d_t·θ̄ + (1 − d_t)·θ_G with d_t = min(ema, (1 + t)/(10 + t)) (Polyak averaging of GAN weights,
+        Yazıcı et al. 2019; the warm-up of TensorFlow's ExponentialMovingAverage, so that the average soon
+        forgets the random start). Every floating tensor of G's state is averaged, BatchNorm's running
+        statistics included; integer counters are copied."""
+        self.average_updates += 1
+        t = self.average_updates
+        decay = min(self.ema_decay, (1 + t) / (10 + t))
+        for average, live in zip(self.average.state_dict().values(), self.generator.state_dict().values()):
+            if average.is_floating_point():
+                average.lerp_(live, 1.0 - decay)
+            else:
+                average.copy_(live)
+
     def generator_norm(self) -> float:
         """L2 norm of all generator parameters, ‖θ_G‖₂ = sqrt(Σ θ²) (a host sync)."""
         return float(torch.linalg.vector_norm(torch.stack(
             [torch.linalg.vector_norm(p.detach().float()) for p in self.generator.parameters()])))
 
     def state_dict(self) -> dict:
-        """Both networks and both optimisers, under the keys of :data:`STATE_KEYS`, and PatchNCE's projection heads
-        under 'nce_projection' when ``nce`` is on."""
+        """Both networks and both optimisers, under the keys of :data:`STATE_KEYS`, PatchNCE's projection heads
+        under 'nce_projection' when ``nce`` is on, and the weight average under 'average' when ``ema`` is on."""
         state = {"generator": self.generator.state_dict(), "discriminator": self.discriminator.state_dict(),
                  "opt_g": self.opt_g.state_dict(), "opt_d": self.opt_d.state_dict()}
         if self.nce_projection is not None:
             state["nce_projection"] = self.nce_projection.state_dict()
+        if self.average is not None:
+            state["average"] = {"generator": self.average.state_dict(), "updates": self.average_updates}
         return state
 
     def load_state_dict(self, state: dict) -> None:
@@ -335,6 +365,9 @@ class TranslatorTraining:
         self.opt_d.load_state_dict(copy.deepcopy(state["opt_d"]))
         if self.nce_projection is not None:
             self.nce_projection.load_state_dict(state["nce_projection"])
+        if self.average is not None:
+            self.average.load_state_dict(state["average"]["generator"])
+            self.average_updates = int(state["average"]["updates"])
 
 
 def other_classes(labels: torch.Tensor, num_classes: int) -> torch.Tensor:

@@ -586,9 +586,9 @@ def _window_row(losses: torch.Tensor, training: TranslatorTraining, job: Job, st
     row = {"step": state.step, **dict(zip(LOSS_NAMES, losses.mean(dim=0).tolist())),
            "images_per_s": images / max(session_seconds, 1e-9)}
     if _checkpoints_at(state.step, job) and job.validation is not None and bool(job.validation.aligned.any()):
-        row["val_l1"] = validation_l1(training.generator, job.validation, conditioning=job.conditioning)
+        row["val_l1"] = validation_l1(training.output_generator, job.validation, conditioning=job.conditioning)
     if job.evaluates_at(state.step):
-        row["val_by_class"] = validation_by_class(training.generator, job.validation, job.conditioning)
+        row["val_by_class"] = validation_by_class(training.output_generator, job.validation, job.conditioning)
     return row
 
 
@@ -669,12 +669,12 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
                     on_log(row)
                 _show(bar, row)
             bar.update(1)
-    bad = _non_finite_tensors(training.generator)
+    bad = _non_finite_tensors(training.output_generator)
     if bad:
         raise TrainingDiverged(f"{job.label}: non-finite generator weights at step {state.step} ({_describe(bad)}); "
                                f"{state.last_good(job.checkpoint)}; {job.remedy()}")
     seconds = state.seconds_before + time.perf_counter() - started
-    return TrainResult(training.generator.cpu(), state.history, state.step, seconds, state.resumed_from, str(device),
+    return TrainResult(training.output_generator.cpu(), state.history, state.step, seconds, state.resumed_from, str(device),
                        precision, precision_reason)
 
 
