@@ -101,7 +101,8 @@ def run_variant(params, pairs, splits, direction, overrides, seed, iterations, t
     train = load_pair_data(pairs, splits, direction, "all", size, root)
     objective, _ = resolve_objective(run["objective"], train)
     settings = objective_settings(settings, run, objective, direction)
-    conditioning = build_conditioning(run["conditioning"][direction], pairs, "all", train, params["classify"], seed)
+    conditioning = build_conditioning(run["conditioning"][direction], pairs, "all", train, params["classify"], seed,
+                                      run.get("inferred_epochs"))
     started = time.perf_counter()
     guide = build_guide(settings, train, params["classify"], seed)
     result = train_translator(train, settings, run, direction, "all", progress=False, conditioning=conditioning,

@@ -201,3 +201,31 @@ def test_inferred_conditioning_reads_the_class_from_the_input_and_survives_the_m
     assert [p.name for p in written] == ["red.png"]
     with pytest.raises(ValueError, match="needs the classify settings"):
         build_conditioning("inferred", pairs, "all", data)
+
+
+def test_inferred_epochs_sets_how_long_the_input_classifier_trains(monkeypatch):
+    """``translation.inferred_epochs`` replaces classify's epochs for the input classifier (and nothing else of
+    classify's settings); None keeps classify's."""
+    import pandas as pd
+
+    import vtgen.stages.train as train_module
+
+    seen = []
+    real_train = train_module.train_classifier
+
+    def recording(images, labels, test_images, test_labels, num_classes, settings, seed, **kwargs):
+        run = real_train(images, labels, test_images, test_labels, num_classes, settings, seed, **kwargs)
+        seen.append((dict(settings), len(run.test_accuracy)))
+        return run
+
+    monkeypatch.setattr(train_module, "train_classifier", recording)
+    touch_like = colour_blind_pairs()
+    data = PairData(touch_like.targets, touch_like.inputs, touch_like.classes, touch_like.aligned,
+                    touch_like.targets.clone(), touch_like.input_pool)
+    pairs = pd.DataFrame({"split": "train", "class": data.classes})
+    classify = {"width": 0.25, "epochs": 2, "batch_size": 8, "lr": 0.001}
+    longer = train_module.build_conditioning("inferred", pairs, "all", data, classify, seed=0, epochs=5)
+    default = train_module.build_conditioning("inferred", pairs, "all", data, classify, seed=0)
+    assert [(s["epochs"], epochs_run) for s, epochs_run in seen] == [(5, 5), (2, 2)]
+    assert {k: v for k, v in seen[0][0].items() if k != "epochs"} == {k: v for k, v in seen[1][0].items() if k != "epochs"}
+    assert longer.classifier_settings["epochs"] == 5 and default.classifier_settings["epochs"] == 2

@@ -792,11 +792,12 @@ def _finished_probe(folder: Path | None, settings: dict, run: dict, direction: s
 
 
 def build_conditioning(kind: str, pairs: pd.DataFrame, scope: str, data: PairData,
-                       classify: dict | None = None, seed: int = 0) -> Conditioning:
+                       classify: dict | None = None, seed: int = 0, epochs: int | None = None) -> Conditioning:
     """The ``translation.conditioning`` of one model: its classes are those of the scope's pairs (sorted);
     a ``reference`` is the typical training target of each class (:func:`typical_images`); ``inferred``
     trains the classify stage's classifier (``classify``: width, epochs, batch_size, lr; at the model's
-    side) on the training inputs of each class, seeded with ``seed``."""
+    side) on the training inputs of each class for ``epochs`` epochs (``translation.inferred_epochs``;
+    None: classify's own), seeded with ``seed``."""
     if kind == "none":
         return Conditioning()
     names = tuple(sorted(set(pairs_in(pairs, "train", scope)["class"])))
@@ -811,6 +812,8 @@ def build_conditioning(kind: str, pairs: pd.DataFrame, scope: str, data: PairDat
     labels = torch.cat([torch.full((len(data.input_pool[name]),), i, dtype=torch.int64) for i, name in enumerate(names)])
     images = data.pool_images[index]
     settings = {"size": int(images.shape[-1]), **{k: classify[k] for k in ("width", "epochs", "batch_size", "lr")}}
+    if epochs is not None:
+        settings["epochs"] = int(epochs)
     run = train_classifier(images, labels, images, labels, len(names), settings, seed)
     print(f"conditioning inferred: input classifier trained on {len(images)} training inputs of {len(names)} "
           f"classes ({settings['epochs']} epochs), training accuracy {run.test_accuracy[-1]:.3f}")
@@ -882,7 +885,8 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
     data = load_pair_data(pairs, splits, direction, scope, settings["size"])
     validation = (load_pair_data(pairs, splits, direction, scope, settings["size"], split="val")
                   if not pairs_in(pairs, "val", scope).empty else None)
-    conditioning = build_conditioning(run["conditioning"][direction], pairs, scope, data, params["classify"], run["seed"])
+    conditioning = build_conditioning(run["conditioning"][direction], pairs, scope, data, params["classify"], run["seed"],
+                                      run["inferred_epochs"])
     settings = check_training_fits(settings, len(data.targets), f"presets.{run['preset']}", f"train {direction}/{scope}",
                                    resolve_device(run["device"]).type)
     objective, objective_reason = resolve_objective(run["objective"], data)
