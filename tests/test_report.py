@@ -165,7 +165,8 @@ def fake_run(root, at_chance: bool | None = None, greyscale: bool = False, half_
     _timing(folders["scores"], "score", 2.0)
     for modality in ("visual", "tactile"):
         settings = {"real": {"final_mean": 0.71, "interval": [0.3, 0.95], "test_images": 4},
-                    "real+generated": {"final_mean": 0.81, "interval": [0.4, 0.97], "test_images": 4}}
+                    "real+generated": {"final_mean": 0.81, "interval": [0.4, 0.97], "test_images": 4},
+                    "low-data real": {"final_mean": 0.45, "interval": [0.15, 0.8], "test_images": 4}}
         if at_chance is not None:
             settings["real"]["at_chance"] = at_chance
         _write_json(folders["classify"] / modality / "summary.json", {
@@ -438,6 +439,9 @@ def test_first_screen_answers_whether_generated_data_helps_before_the_long_lines
     assert ("| tactile | chosen on validation; within noise on test (unresolved) | real+generated | 0.810 [0.400, 0.970] "
             "| 0.710 [0.300, 0.950] | +0.100 [-0.050, +0.250] | 4 |") in summary
     assert "| visual | not tested: real only (not scored) | real | 0.710 [0.300, 0.950] | 0.710 [0.300, 0.950] |" in summary
+    # more real data: low-data real -> real only, within noise here (the intervals overlap), explained below
+    assert "| 4 | 0.450 → 0.710: within noise |" in summary and "<td>0.450 → 0.710: within noise</td>" in page
+    assert "little room to help the low-data setting" in summary[first:verdicts]
     assert "too few groups" in summary[first:verdicts] and "&lt;b&gt;" in page[:page.index("<h2>Verdicts</h2>")]
     # the grid: one row per direction, one column per family, each cell coloured by its status
     assert "| direction | KID (classifier) | memorisation (classifier) |" in summary
@@ -704,3 +708,15 @@ def test_report_renders_in_headless_chromium_with_every_image_and_table(snakemak
         assert any(c.startswith(prefix) for c in captions), prefix
     assert min(rows) >= 2  # a header and at least one row each
     assert SCREENSHOT.stat().st_size > 10_000
+
+
+def test_more_real_data_says_whether_all_real_images_beat_the_low_data_share_beyond_the_intervals():
+    from vtgen.io.report_verdicts import more_real_data
+
+    low = {"final_mean": 0.225, "interval": [0.177, 0.282]}
+    assert more_real_data({"low-data real": low, "real": {"final_mean": 0.239, "interval": [0.189, 0.297]}}) \
+        == "0.225 → 0.239: within noise"
+    assert more_real_data({"low-data real": low, "real": {"final_mean": 0.4, "interval": [0.3, 0.5]}}) \
+        == "0.225 → 0.400: more real data helps"
+    assert more_real_data({"low-data real": {"final_mean": 0.225}, "real": {"final_mean": 0.4}}) == "0.225 → 0.400"
+    assert more_real_data({"real": {"final_mean": 0.4}}) == "—"

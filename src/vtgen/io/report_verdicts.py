@@ -80,16 +80,32 @@ def verdict_lines(data: dict) -> list[dict]:
 VERDICT_COLOURS = ("ok", "unresolved", "warning", "uninformative", "not scored")
 
 
+def more_real_data(settings: dict) -> str:
+    """The test accuracy of real only with the low-data share of the training images and with all of them
+    (``low → all``) and whether all is better beyond both 95% intervals; an em dash when either is missing.
+    Within noise, more real images did not help the classifier, so generated images learned from those same
+    images have little room to help the low-data setting."""
+    low, full = settings.get("low-data real") or {}, settings.get("real") or {}
+    if low.get("final_mean") is None or full.get("final_mean") is None:
+        return "—"
+    text = f"{low['final_mean']:.3f} → {full['final_mean']:.3f}"
+    (low_lo, low_hi), (full_lo, _) = low.get("interval") or (None, None), full.get("interval") or (None, None)
+    if low_hi is None or full_lo is None:
+        return text
+    return text + (": more real data helps" if full_lo > low_hi else ": within noise")
+
+
 def policy_rows(data: dict) -> list[dict]:
     """"Does generated data help here?": per modality, the classify stage's policy (the setting chosen on the
-    validation split, or real only and why) and its test accuracy beside real only's, with intervals."""
+    validation split, or real only and why) and its test accuracy beside real only's, with intervals, and
+    :func:`more_real_data`."""
     rows = []
     for modality, entry in data["classify"].items():
         summary = entry["summary"]
         policy = summary.get("policy")
         if summary.get("status", "ok") != "ok" or not policy:
             rows.append({"modality": modality, "answer": "not measured", "status": "not scored",
-                         "chosen": "—", "accuracy": "—", "real": "—", "gain": "—", "n": "—",
+                         "chosen": "—", "accuracy": "—", "real": "—", "gain": "—", "n": "—", "more_real": "—",
                          "why": summary.get("status") if summary.get("status", "ok") != "ok"
                          else "this classify run predates the policy (no summary.json policy)"})
             continue
@@ -109,7 +125,8 @@ def policy_rows(data: dict) -> list[dict]:
                      "real": interval_cell(test.get("real_accuracy"), *(test.get("real_interval") or (None, None))),
                      "gain": "—" if gain is None else f"{gain:+.3f}" + (f" [{low:+.3f}, {high:+.3f}]"
                                                                          if low is not None else ""),
-                     "n": test.get("images", "—"), "why": policy.get("reason", "")})
+                     "n": test.get("images", "—"), "more_real": more_real_data(summary.get("settings") or {}),
+                     "why": policy.get("reason", "")})
     return rows
 
 
