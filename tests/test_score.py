@@ -309,3 +309,36 @@ def test_tile_reader_gives_read_tiles_tensors_and_decodes_each_file_once(tmp_pat
     assert torch.equal(reader(wanted, 16), read_tiles(wanted, 16))  # resized, in the order asked
     assert torch.equal(reader(paths[:10], 16), read_tiles(paths[:10], 16))
     assert sorted(calls) == [35, 35]  # every file decoded once, in two halves
+
+
+def test_verdicts_read_beyond_the_noise_from_the_paired_difference():
+    """Generated's and the baselines' FID intervals overlap; with the paired difference below 0 for every
+    baseline the verdict is ok, with one reaching 0 it is unresolved against that baseline; goal_metrics
+    carries the differences under generated_minus."""
+    from vtgen.stages.score import DIFFERENCE_COLUMNS, goal_metrics, verdicts
+
+    values = {"generated": (176.0, 63.0, 298.0), "real_heldout": (10.0, 5.0, 20.0),
+              "nearest_neighbour": (1083.0, 700.0, 1400.0), "mean_image": (358.0, 216.0, 507.0),
+              "flat_mean_colour": (381.0, 230.0, 540.0), "blurred_real": (261.0, 137.0, 387.0)}
+    table = pd.DataFrame([{"direction": "t2v", "scope": "all" if c == "generated" else "-", "class": "(all)",
+                           "candidate": c, "view": "classifier", "metric": "fid", "value": v, "low": lo, "high": hi,
+                           "n": 72, "n_reference": 72} for c, (v, lo, hi) in values.items()])
+    memorisation = pd.DataFrame(columns=["direction", "class", "view", "candidate", "rate", "n"])
+
+    def differences(blurred_high):
+        return pd.DataFrame([{"direction": "t2v", "scope": "all", "view": "classifier", "metric": "fid",
+                              "baseline": b, "value": values["generated"][0] - values[b][0], "low": -300.0,
+                              "high": blurred_high if b == "blurred_real" else -50.0, "n": 72, "n_baseline": 72,
+                              "n_reference": 72} for b in ("nearest_neighbour", "mean_image", "flat_mean_colour",
+                                                           "blurred_real")], columns=DIFFERENCE_COLUMNS)
+
+    (without,) = verdicts(table, memorisation)
+    assert without["status"] == "unresolved" and "intervals overlap" in without["text"]
+    (paired,) = verdicts(table, memorisation, differences(-1.0))
+    assert paired["status"] == "ok" and "paired difference" in paired["text"]
+    (reaching,) = verdicts(table, memorisation, differences(5.0))
+    assert reaching["status"] == "unresolved" and "against blurred_real (the paired" in reaching["text"]
+    goals = goal_metrics(table, memorisation, pd.DataFrame(columns=["direction", "class", "view"]), differences(-1.0))
+    minus = goals["t2v"]["fid_classifier"]["generated_minus"]
+    assert minus["flat_mean_colour"] == {"value": 176.0 - 381.0, "low": -300.0, "high": -50.0, "n": 72,
+                                         "n_reference": 72}

@@ -34,7 +34,9 @@ modality, its penultimate layer) and ``random`` (a fixed random-weight CNN); the
 distance works on pixels. Per view: KID, FID, the classifier two-sample test, precision, recall,
 density and coverage. ``memorisation.csv`` compares each generated test image's distance to the
 training targets with that of real held-out images (classifier features and pixels).
-``summary.json`` holds one verdict per direction and metric family.
+``differences.csv`` holds generated's KID and FID minus each baseline's on the same reference, with
+paired intervals (the reference's own noise cancels in a difference; two sets' separate intervals
+both carry it). ``summary.json`` holds one verdict per direction and metric family.
 """
 
 from __future__ import annotations
@@ -72,6 +74,9 @@ DISTRIBUTION_COLUMNS = ["direction", "scope", "class", "candidate", "view", "met
                         "n", "n_reference"]
 MEMORISATION_COLUMNS = ["direction", "class", "view", "candidate", "rate", "rate_low", "rate_high",
                         "nearest_is_train_share", "n", "n_train", "train_groups"]
+# generated minus each trivial baseline, both against the same reference (all classes): paired intervals
+DIFFERENCE_COLUMNS = ["direction", "scope", "view", "metric", "baseline", "value", "low", "high", "n", "n_baseline",
+                      "n_reference"]
 DIVERSITY_COLUMNS = ["direction", "class", "view", "ratio", "low", "high", "generated_spread", "real_spread", "n",
                      "n_real", "interval"]
 # a warning's reading where some class trained on one split group: copying and learning the class look alike there
@@ -448,14 +453,15 @@ def _cap_rows(rows: np.ndarray, limit: int, rng: np.random.Generator) -> np.ndar
 
 
 def distribution_direction(direction: str, sets: dict, cache: FeatureCache, seed: int, max_per_class: int,
-                           fid_resamples: int = 0) -> tuple[pd.DataFrame, dict]:
+                           fid_resamples: int = 0) -> tuple[pd.DataFrame, dict, pd.DataFrame]:
     """Distribution metrics of every candidate set of one direction against real held-out half B, per
     class and over all classes (``(all)``); see the module docstring. Per class, half B and every
     candidate are subsampled (seeded) to at most ``max_per_class`` images, and a candidate to the size
     of half A's class, so the quadratic metrics cost at most O(max_per_class^2) per class; the
     ``(all)`` row pools the images chosen per class (so its class mix is half A's). Features come
-    from ``cache``, each image encoded once. Returns the table (DISTRIBUTION_COLUMNS) and facts for
-    summary.json (halving, blur sigma, the cap)."""
+    from ``cache``, each image encoded once. Returns the table (DISTRIBUTION_COLUMNS), facts for
+    summary.json (halving, blur sigma, the cap) and the paired differences of the ``(all)`` row
+    (DIFFERENCE_COLUMNS, :func:`paired_differences`)."""
     test_images, test_classes, test_groups = sets["real_test"]
     in_a, by_group = heldout_halves(test_classes, test_groups, seed)
     sigma = dist.default_blur_sigma(test_images.shape[-1])
@@ -488,7 +494,7 @@ def distribution_direction(direction: str, sets: dict, cache: FeatureCache, seed
     for key, (images, _, keys, _) in candidates.items():
         features(images, keys, np.concatenate([chosen[(c, key)] for c in classes]))
 
-    table_rows = []
+    table_rows, pooled = [], {}
     for name in [*classes, "(all)"]:
         names = classes if name == "(all)" else [name]
         ref_index = np.concatenate([chosen_ref[c] for c in names])
@@ -499,15 +505,52 @@ def distribution_direction(direction: str, sets: dict, cache: FeatureCache, seed
             rows = np.concatenate([chosen[(c, key)] for c in names])
             if len(rows) == 0:
                 continue
-            for (view, metric), (value, low, high) in _set_metrics(ref, features(images, keys, rows),
-                                                                   fid_resamples, seed).items():
+            candidate = features(images, keys, rows)
+            if name == "(all)":
+                pooled[key] = candidate
+            for (view, metric), (value, low, high) in _set_metrics(ref, candidate, fid_resamples, seed).items():
                 table_rows.append({"direction": direction, "scope": key[1], "class": name, "candidate": key[0],
                                    "view": view, "metric": metric, "value": value, "low": low, "high": high,
                                    "n": len(rows), "n_reference": len(ref_index)})
     facts = {"halves_by": "group" if by_group else "image (some class has a single test group)",
              "blur_sigma": sigma, "half_a": int(in_a.sum()), "half_b": int((~in_a).sum()),
              "max_per_class": int(max_per_class), "fid_resamples": int(fid_resamples)}
-    return pd.DataFrame(table_rows, columns=DISTRIBUTION_COLUMNS), facts
+    differences = paired_differences(direction, ref, pooled, fid_resamples, seed) if pooled else \
+        pd.DataFrame(columns=DIFFERENCE_COLUMNS)
+    return pd.DataFrame(table_rows, columns=DISTRIBUTION_COLUMNS), facts, differences
+
+
+def paired_differences(direction: str, reference: dict, candidates: dict, fid_resamples: int,
+                       seed: int) -> pd.DataFrame:
+    """KID and FID of each generated set minus each trivial baseline's (BASELINES), per feature view, both
+    against the same ``reference`` features (real held-out half B, all classes): FID with a paired
+    bootstrap (:func:`vtgen.core.distribution.paired_fid_difference`, ``fid_resamples`` draws), KID over
+    subsets that share the reference subset (:func:`vtgen.core.distribution.paired_kid_difference`,
+    mean +- 1.96 std as the KID rows). A difference whose interval lies below 0 says generated beats that
+    baseline beyond the noise of this comparison. ``candidates``: (candidate, scope) -> view -> features."""
+    rows = []
+    for (kind, scope), generated in candidates.items():
+        if kind != "generated":
+            continue
+        for baseline in BASELINES:
+            base = candidates.get((baseline, "-"))
+            if base is None:
+                continue
+            for view in [v for v in reference if v != "spectrum"]:
+                real, a, b = reference[view], generated[view], base[view]
+                smaller = min(len(real), len(a), len(b))
+                try:
+                    mean, std = dist.paired_kid_difference(real, a, b, subsets=KID_SUBSETS,
+                                                           subset_size=max(2, smaller // 2) if smaller >= 4 else smaller)
+                    kid_row = (mean, mean - 1.96 * std, mean + 1.96 * std)
+                    fid_row = dist.paired_fid_difference(real, a, b, fid_resamples, seed)
+                except ValueError:
+                    continue
+                for metric, (value, low, high) in (("kid", kid_row), ("fid", fid_row)):
+                    rows.append({"direction": direction, "scope": scope, "view": view, "metric": metric,
+                                 "baseline": baseline, "value": value, "low": low, "high": high, "n": len(a),
+                                 "n_baseline": len(b), "n_reference": len(real)})
+    return pd.DataFrame(rows, columns=DIFFERENCE_COLUMNS)
 
 
 def _pooled_generated(sets: dict):
@@ -596,13 +639,16 @@ def _num(value) -> float | None:
     return None if value is None or not math.isfinite(float(value)) else round(float(value), 6)
 
 
-def goal_metrics(distribution: pd.DataFrame, memorisation: pd.DataFrame, diversity: pd.DataFrame) -> dict:
+def goal_metrics(distribution: pd.DataFrame, memorisation: pd.DataFrame, diversity: pd.DataFrame,
+                 differences: pd.DataFrame | None = None) -> dict:
     """Issue 24's measurable goals per direction, every value with its 95% interval and n, in plain
     nested dicts for summary.json and the report's metrics.json: the diversity ratios (median over
     classes), recall and coverage of generated and real held-out, KID and FID of generated, real
     held-out and every trivial baseline (classifier view, all classes), and the memorisation rate
-    (classifier view; pixels where there is no classifier) of generated and real held-out. A value that
-    could not be computed (NaN) is left out."""
+    (classifier view; pixels where there is no classifier) of generated and real held-out; under KID and
+    FID, ``generated_minus``: generated's value minus each baseline's on the shared reference with its
+    paired interval (``differences``, :func:`paired_differences`). A value that could not be computed
+    (NaN) is left out."""
     result: dict = {}
     for direction in sorted(set(distribution["direction"]) | set(diversity["direction"])):
         goals: dict = {}
@@ -626,6 +672,14 @@ def goal_metrics(distribution: pd.DataFrame, memorisation: pd.DataFrame, diversi
                     r = match.iloc[0]
                     entry[candidate] = {"value": _num(r["value"]), "low": _num(r["low"]), "high": _num(r["high"]),
                                         "n": int(r["n"]), "n_reference": int(r["n_reference"])}
+            if differences is not None and metric in ("kid", "fid") and generated_scope:
+                paired = differences[(differences["direction"] == direction) & (differences["view"] == "classifier")
+                                     & (differences["metric"] == metric) & (differences["scope"] == generated_scope)]
+                if len(paired):
+                    entry["generated_minus"] = {r["baseline"]: {"value": _num(r["value"]), "low": _num(r["low"]),
+                                                                "high": _num(r["high"]), "n": int(r["n"]),
+                                                                "n_reference": int(r["n_reference"])}
+                                                for _, r in paired.iterrows()}
             if entry:
                 goals[f"{metric}_classifier"] = entry
         mem = memorisation[(memorisation["direction"] == direction) & (memorisation["class"] == "(all)")]
@@ -661,15 +715,18 @@ def _separated(a: tuple[float, float], b: tuple[float, float]) -> bool | None:
     return a[1] < b[0] or b[1] < a[0]
 
 
-def verdicts(table: pd.DataFrame, memorisation: pd.DataFrame) -> list[dict]:
+def verdicts(table: pd.DataFrame, memorisation: pd.DataFrame, differences: pd.DataFrame | None = None) -> list[dict]:
     """One verdict per direction and metric family (VERDICT_METRICS, memorisation) for the pooled
     model over all classes: does generated beat every trivial baseline (beyond the intervals where
     the metric has one), and where does it sit between the best baseline (0) and real vs real (1)?
     Status: ``ok``, ``unresolved`` (better, but an interval overlaps), ``warning`` (a baseline is as
     good or better), or ``uninformative`` (real vs real itself does not beat the mean image, flat
     colour or blurred real, so the metric cannot rank on this data; the nearest-neighbour targets
-    are real images, which a distribution metric places near real vs real by construction)."""
+    are real images, which a distribution metric places near real vs real by construction).
+    Where ``differences`` holds the paired difference of generated and a baseline (KID, FID), "beyond
+    the noise" is read from it (its interval below 0) rather than from the two sets' own intervals."""
     result = []
+    differences = pd.DataFrame(columns=DIFFERENCE_COLUMNS) if differences is None else differences
     overall = table[(table["class"] == "(all)")]
     for direction in sorted(set(overall["direction"])):
         for metric, view in VERDICT_METRICS:
@@ -682,8 +739,14 @@ def verdicts(table: pd.DataFrame, memorisation: pd.DataFrame) -> list[dict]:
             if generated is None or real is None or not baselines or math.isnan(generated[0]):
                 continue
             lost = [c for c, v in baselines.items() if not _better(metric, generated[0], v[0])]
-            unresolved = [c for c, v in baselines.items() if c not in lost
-                          and _separated(generated[1:3], v[1:3]) is False]
+            generated_scope = "all" if ("generated", "all") in values else next(
+                (s for (c, s) in values if c == "generated"), None)
+            paired = differences[(differences["direction"] == direction) & (differences["metric"] == metric)
+                                 & (differences["view"] == view) & (differences["scope"] == generated_scope)]
+            paired = {r.baseline: (r.value, r.low, r.high) for r in paired.itertuples()
+                      if not math.isnan(r.high)}
+            unresolved = [c for c, v in baselines.items() if c not in lost and (
+                paired[c][2] >= 0 if c in paired else _separated(generated[1:3], v[1:3]) is False)]
             best_name, best = min(baselines.items(), key=lambda item: (
                 abs(item[1][0] - 0.5) if metric == "two_sample" else item[1][0] * (1 if DISTRIBUTION_METRICS[metric][1] else -1)))
             span = best[0] - real[0]
@@ -703,9 +766,12 @@ def verdicts(table: pd.DataFrame, memorisation: pd.DataFrame) -> list[dict]:
             elif lost:
                 text = f"does not beat {', '.join(lost)}"
             elif unresolved:
-                text = f"beats every trivial baseline, but its interval overlaps {', '.join(unresolved)}'s"
+                text = (f"beats every trivial baseline, but not beyond the noise against {', '.join(unresolved)}"
+                        + (" (the paired difference's 95% interval reaches 0)" if paired else " (the intervals overlap)"))
             else:
-                text = "beats every trivial baseline" + ("" if math.isnan(generated[1]) else " beyond the intervals")
+                text = "beats every trivial baseline" + (
+                    " beyond the noise (each paired difference's 95% interval below 0)" if paired
+                    else "" if math.isnan(generated[1]) else " beyond the intervals")
             if status in ("ok", "unresolved") and not math.isnan(position):
                 text += f"; it sits {position:.2f} of the way from the best baseline (0) to real vs real (1)"
             result.append({"direction": direction, "family": family, "metric": metric, "view": view, "status": status,
@@ -757,7 +823,7 @@ def _greyscale(images: torch.Tensor) -> bool:
 def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, out_dir: str | Path,
               classify_dir: str | Path | None = None) -> dict:
     """Score every direction under ``generated_root``; write ``scores`` (per image), ``by_class``,
-    ``distribution``, ``memorisation`` and ``diversity`` (parquet and CSV) and ``summary.json`` (with
+    ``distribution``, ``memorisation``, ``diversity`` and ``differences`` (parquet and CSV) and ``summary.json`` (with
     ``goals``: :func:`goal_metrics`) to ``out_dir``. Reads ``params["score"]``: ``batch_size``,
     ``max_per_class`` and ``fid_resamples``.
 
@@ -770,7 +836,7 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
     seed = SCORE_SEED
     splits = read_table(pairs_dir / "splits.parquet", SPLIT_COLUMNS, "the split table of the pairs stage")
     settings = params["score"]
-    tables, distributions, memorised, diverse, notes, not_scored, facts = [], [], [], [], [], {}, {}
+    tables, distributions, differences, memorised, diverse, notes, not_scored, facts = [], [], [], [], [], [], {}, {}
     timings = {"ssim": 0.0, "distribution": 0.0, "memorisation and diversity": 0.0}
     tiles = TileReader()
     for direction in DIRECTIONS:
@@ -787,9 +853,10 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
         target = DIRECTIONS[direction][1]
         cache = FeatureCache(load_encoders(classify_dir, target, notes))
         started = time.perf_counter()
-        table, facts[direction] = distribution_direction(direction, sets, cache, seed, settings["max_per_class"],
-                                                         settings["fid_resamples"])
+        table, facts[direction], paired = distribution_direction(direction, sets, cache, seed,
+                                                                 settings["max_per_class"], settings["fid_resamples"])
         distributions.append(table)
+        differences.append(paired)
         timings["distribution"] += time.perf_counter() - started
         started = time.perf_counter()
         memorised.append(memorisation_direction(direction, sets, cache))
@@ -803,9 +870,10 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
     distribution = pd.concat(distributions, ignore_index=True) if distributions else pd.DataFrame(columns=DISTRIBUTION_COLUMNS)
     memorisation = pd.concat(memorised, ignore_index=True) if memorised else pd.DataFrame(columns=MEMORISATION_COLUMNS)
     diversity = pd.concat(diverse, ignore_index=True) if diverse else pd.DataFrame(columns=DIVERSITY_COLUMNS)
+    paired = pd.concat(differences, ignore_index=True) if differences else pd.DataFrame(columns=DIFFERENCE_COLUMNS)
     generated_rows = scores.loc[scores["candidate"] == "generated", "image"]
     size = _image_side(generated_rows.iloc[0]) if len(generated_rows) else None
-    found = verdicts(distribution, memorisation) if tables else []
+    found = verdicts(distribution, memorisation, paired) if tables else []
     summary = {
         "synthetic": params["dataset"]["source"] == "synthetic",
         "image_size": size,
@@ -816,14 +884,14 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
         "scores": headline(classes_table) if tables else {},
         "distribution": facts,
         "verdicts": found,
-        "goals": goal_metrics(distribution, memorisation, diversity),
+        "goals": goal_metrics(distribution, memorisation, diversity, paired),
         "not_scored": not_scored,
         "notes": notes,
         "seconds": {k: round(v, 2) for k, v in timings.items()},
     }
     with atomic_output_dir(out_dir) as tmp:
         for name, table in (("scores", scores), ("by_class", classes_table), ("distribution", distribution),
-                            ("memorisation", memorisation), ("diversity", diversity)):
+                            ("memorisation", memorisation), ("diversity", diversity), ("differences", paired)):
             table.to_parquet(tmp / f"{name}.parquet", index=False)
             table.to_csv(tmp / f"{name}.csv", index=False, float_format="%.6f")
         (tmp / "summary.json").write_text(json.dumps(_plain(summary), indent=2, allow_nan=False) + "\n")
