@@ -268,6 +268,30 @@ def pair_data(fixed: bool) -> PairData:
                     fixed=torch.full((6,), fixed))
 
 
+def test_class_gan_iterations_replace_the_presets_per_direction(default_params):
+    """``class_gan.iterations`` null keeps the preset's steps and adds no key (so the default's settings, and
+    the checkpoint keys hashed from them, are unchanged); a number or one per direction replaces them."""
+    import copy
+
+    from vtgen.io.params import ParamsError, validate_params
+    params = copy.deepcopy(default_params)
+    assert params["translation"]["class_gan"]["iterations"] is None
+    plain = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")
+    assert plain["iterations"] == SETTINGS["iterations"]
+    params["translation"]["class_gan"]["iterations"] = None
+    without = copy.deepcopy(params)
+    del without["translation"]["class_gan"]["iterations"]
+    assert objective_settings(dict(SETTINGS), without["translation"], "class_gan", "v2t") == plain
+    params["translation"]["class_gan"]["iterations"] = {"v2t": 12000, "t2v": None}
+    validate_params(params)
+    assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")["iterations"] == 12000
+    assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v")["iterations"] == SETTINGS["iterations"]
+    assert objective_settings(dict(SETTINGS), params["translation"], "pix2pix", "v2t") == SETTINGS  # pix2pix: the preset's
+    params["translation"]["class_gan"]["iterations"] = 0
+    with pytest.raises(ParamsError, match=r"translation\.class_gan\.iterations"):
+        validate_params(params)
+
+
 def test_auto_picks_the_objective_from_the_pair_kind():
     assert resolve_objective("auto", pair_data(fixed=False))[0] == "class_gan"
     assert resolve_objective("auto", pair_data(fixed=True))[0] == "pix2pix"

@@ -210,7 +210,8 @@ def resolve_objective(setting: str, data: PairData) -> tuple[str, str]:
 def objective_settings(settings: dict, translation: dict, objective: str, direction: str | None = None) -> dict:
     """The preset block with the class_gan keys of ``translation.class_gan`` added when that objective
     trains (the pix2pix settings stay exactly the preset's); a key given per direction ({v2t: w, t2v: w}, as
-    ``nce`` is) takes ``direction``'s value."""
+    ``nce`` is) takes ``direction``'s value. ``class_gan.iterations`` replaces the preset's iterations where
+    it is not null."""
     if objective != "class_gan":
         return settings
     if settings["batch_size"] < 2 or settings["batch_size"] % 2:
@@ -225,6 +226,9 @@ def objective_settings(settings: dict, translation: dict, objective: str, direct
             terms[key] = value[direction]
     if terms.get("skips") == "all":
         terms["skips"] = None  # the generator's own spelling of every skip connection
+    iterations = terms.pop("iterations", None)
+    if iterations is not None:
+        terms["iterations"] = iterations
     return dict(settings, objective="class_gan", **terms)
 
 
