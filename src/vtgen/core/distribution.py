@@ -356,6 +356,19 @@ def _one_blas_thread_each(function, items: list, parallel: bool) -> list:
             return list(pool.map(function, items))
 
 
+def _check_fid_resamples(resamples) -> None:
+    if isinstance(resamples, bool) or not isinstance(resamples, int) or resamples < 0 or resamples == 1:
+        raise ValueError(f"FID resamples must be 0 or an integer >= 2, got {resamples!r}")
+
+
+def _bias_corrected_interval(draws: np.ndarray, value: float, level: float) -> tuple[float, float]:
+    """Percentile interval of bootstrap ``draws`` after shifting them by the bootstrap's bias estimate
+    (their mean minus ``value``), so that it brackets ``value`` with the draws' spread."""
+    tail = (1 - level) / 2
+    low, high = np.quantile(draws - (draws.mean() - value), [tail, 1 - tail])
+    return float(low), float(high)
+
+
 def fid_interval(real, fake, resamples: int = 50, seed: int = 0, level: float = 0.95) -> tuple[float, float]:
     """The interval of :func:`fid_and_interval` alone."""
     return fid_and_interval(real, fake, resamples, seed, level)[1:]
@@ -379,8 +392,7 @@ def fid_and_interval(real, fake, resamples: int = 50, seed: int = 0,
     (ValueError); the interval is (nan, nan) when ``resamples`` is 0.
     """
     x, y = _pair(real, fake, 2, "FID")
-    if isinstance(resamples, bool) or not isinstance(resamples, int) or resamples < 0 or resamples == 1:
-        raise ValueError(f"FID resamples must be 0 or an integer >= 2, got {resamples!r}")
+    _check_fid_resamples(resamples)
     (xs, of_x, counts_x), (ys, of_y, counts_y) = _distinct_rows(x.numpy()), _distinct_rows(y.numpy())
     g_xx, g_yy, g_xy = xs @ xs.T, ys @ ys.T, xs @ ys.T
     value = _fid_from_grams(g_xx, g_yy, g_xy, counts_x, counts_y)
@@ -397,10 +409,8 @@ def fid_and_interval(real, fake, resamples: int = 50, seed: int = 0,
                                counts[0][i].astype(np.float64), counts[1][j].astype(np.float64))
 
     draws = np.array(_one_blas_thread_each(draw, weights, parallel=len(xs) + len(ys) >= FID_PARALLEL_ROWS))
-    draws -= draws.mean() - value
-    tail = (1 - level) / 2
-    low, high = np.quantile(draws, [tail, 1 - tail])
-    return value, max(float(low), 0.0), max(float(high), 0.0)
+    low, high = _bias_corrected_interval(draws, value, level)
+    return value, max(low, 0.0), max(high, 0.0)
 
 
 def paired_fid_difference(real, fake_a, fake_b, resamples: int = 50, seed: int = 0,
@@ -414,8 +424,7 @@ def paired_fid_difference(real, fake_a, fake_b, resamples: int = 50, seed: int =
     interval when ``resamples`` is 0."""
     x, a = _pair(real, fake_a, 2, "FID")
     b = _pair(real, fake_b, 2, "FID")[1]
-    if isinstance(resamples, bool) or not isinstance(resamples, int) or resamples < 0 or resamples == 1:
-        raise ValueError(f"FID resamples must be 0 or an integer >= 2, got {resamples!r}")
+    _check_fid_resamples(resamples)
     sets = [_distinct_rows(v.numpy()) for v in (x, a, b)]
     (xs, _, cx), (as_, _, ca), (bs, _, cb) = sets
     g_xx, g_aa, g_bb, g_xa, g_xb = xs @ xs.T, as_ @ as_.T, bs @ bs.T, xs @ as_.T, xs @ bs.T
@@ -434,10 +443,7 @@ def paired_fid_difference(real, fake_a, fake_b, resamples: int = 50, seed: int =
 
     rows = len(xs) + len(as_) + len(bs)
     draws = np.array(_one_blas_thread_each(draw, weights, parallel=rows >= FID_PARALLEL_ROWS))
-    draws -= draws.mean() - value
-    tail = (1 - level) / 2
-    low, high = np.quantile(draws, [tail, 1 - tail])
-    return value, float(low), float(high)
+    return (value, *_bias_corrected_interval(draws, value, level))
 
 
 def paired_kid_difference(real, fake_a, fake_b, subsets: int = 100, subset_size: int | None = None,
