@@ -74,7 +74,8 @@ class TranslatorTraining:
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
     ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``statistics``, ``class_guidance``, ``skips``,
     ``latent``, ``upsample``, ``padding``, ``semantic``, ``mismatch``, ``nce``, ``texture``, ``contextual`` (see :meth:`class_step`), ``d_lr_ratio`` (D's learning rate over
-    G's), ``ema`` (:meth:`update_average`: the generator a run yields is the average of its weights) and ``generator`` (:func:`vtgen.core.models.build_generator`: unet, the default, or resnet), and needs ``num_classes``; ``semantic`` > 0 needs ``guide``, a classifier of the target modality over the
+    G's), ``ema`` (:meth:`update_average`: the generator a run yields is the average of its weights), ``lr_decay``
+    (:meth:`schedule_learning_rate`) and ``generator`` (:func:`vtgen.core.models.build_generator`: unet, the default, or resnet), and needs ``num_classes``; ``semantic`` > 0 needs ``guide``, a classifier of the target modality over the
     same class indices (frozen here: eval mode, no gradients for its weights).
     """
 
@@ -122,10 +123,24 @@ class TranslatorTraining:
             g_parameters += list(self.nce_projection.parameters())
         # class_gan's d_lr_ratio: D's learning rate over G's (two time-scale update rule, Heusel et al. 2017)
         d_ratio = settings.get("d_lr_ratio", 1.0) if self.objective == "class_gan" else 1.0
-        self.opt_g, self.opt_d = (make_optimizer(parameters, settings["optimizer"], settings["lr"] * ratio,
-                                                 settings["betas"], multi_tensor_on=self.device.type)
-                                  for parameters, ratio in ((g_parameters, 1.0),
-                                                            (self.discriminator.parameters(), d_ratio)))
+        self.base_lrs = (settings["lr"], settings["lr"] * d_ratio)
+        self.opt_g, self.opt_d = (make_optimizer(parameters, settings["optimizer"], lr, settings["betas"],
+                                                 multi_tensor_on=self.device.type)
+                                  for parameters, lr in zip((g_parameters, self.discriminator.parameters()), self.base_lrs))
+        # class_gan's lr_decay: the share of the steps, at the end, over which both learning rates fall to 0
+        self.lr_decay = float(settings.get("lr_decay", 0.0)) if self.objective == "class_gan" else 0.0
+
+    def schedule_learning_rate(self, step: int, iterations: int) -> None:
+        """Set both learning rates for step ``step`` (from 0) of ``iterations``: with ``lr_decay`` = f > 0,
+        lr_t = lr · min(1, (T − t) / (f·T)), constant and then falling linearly towards 0 over the last f·T steps
+        (the schedule of pix2pix and CycleGAN, Isola et al. 2017, Zhu et al. 2017); D's keeps its ``d_lr_ratio``.
+        A function of t alone, so a resumed run continues the same schedule. f = 0 leaves the rates untouched."""
+        if not self.lr_decay:
+            return
+        scale = min(1.0, (iterations - step) / (self.lr_decay * iterations))
+        for optimizer, base in zip((self.opt_g, self.opt_d), self.base_lrs):
+            for group in optimizer.param_groups:
+                group["lr"] = base * scale
 
     def _autocast(self):
         if self.precision == "bf16":
