@@ -140,7 +140,9 @@ class UNetGenerator(nn.Module):
     drops the finer ones that copy the input's geometry into the output (None: all ``depth - 1``, the U-Net).
     ``latent`` k > 0 adds a random code z ~ N(0, I_k) per image, broadcast over the image as k more input
     channels (BicycleGAN's "add to input", Zhu et al. 2017), so one input can give several outputs;
-    :meth:`forward` draws z from torch's global generator unless it is given (N x k). ``in_channels``
+    :meth:`forward` draws z from torch's global generator unless it is given (N x k). ``latent_map`` draws z per
+    pixel instead (N x k x S x S: noise inputs, as StyleGAN's per-pixel noise, Karras et al. 2019), so the code
+    can place texture where the input is uniform. ``in_channels``
     counts the image and conditioning channels only. ``upsample`` 'resize' doubles each decoder level by
     :func:`resize_conv` instead of a transposed convolution ('transpose', pix2pix's). ``padding`` 'reflect' pads
     the encoder's convolutions by reflection where their input is larger than 2 px (the bottleneck's keeps zeros),
@@ -159,6 +161,7 @@ class UNetGenerator(nn.Module):
         latent: int = 0,
         upsample: str = "transpose",
         padding: str = "zeros",
+        latent_map: bool = False,
     ) -> None:
         super().__init__()
         if upsample not in UPSAMPLINGS:
@@ -167,7 +170,7 @@ class UNetGenerator(nn.Module):
             raise ValueError(f"padding must be one of {PADDINGS}, got {padding!r}")
         self.upsample, self.padding = upsample, padding
         up = (lambda i, o, bias: upsampling_conv(i, o, kernel, bias)) if upsample == "transpose" else resize_conv
-        self.latent = checked_latent(latent)
+        self.latent, self.latent_map = checked_latent(latent), bool(latent_map)
         check_kernel(kernel)
         if not 0.0 <= dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {dropout!r}")
@@ -245,20 +248,31 @@ class UNetGenerator(nn.Module):
         return encoder_width(level, self.ngf)
 
 
+def latent_shape(generator: nn.Module, n: int) -> tuple[int, ...]:
+    """Shape of ``n`` latent codes of ``generator``: N x k, or N x k x S x S with ``latent_map`` (one code per pixel)."""
+    if getattr(generator, "latent_map", False):
+        return (n, generator.latent, generator.size, generator.size)
+    return (n, generator.latent)
+
+
 def with_latent_code(generator: nn.Module, x: torch.Tensor, z: torch.Tensor | None) -> torch.Tensor:
-    """``x`` (checked: N x generator.in_channels x S x S) with the generator's latent code z (N x k; drawn from
-    torch's global generator when None) broadcast over the image as k more channels; ``x`` itself when the
-    generator has no code (``latent`` 0, where a given ``z`` is refused)."""
+    """``x`` (checked: N x generator.in_channels x S x S) with the generator's latent code z (shape
+    :func:`latent_shape`; drawn from torch's global generator when None) as k more channels, broadcast over the
+    image unless it is a map; ``x`` itself when the generator has no code (``latent`` 0, where a given ``z`` is
+    refused)."""
     name = type(generator).__name__
     check_image_batch(x, generator.in_channels, generator.size, name)
     if not generator.latent:
         if z is not None:
             raise ValueError(f"{name}: this generator has no latent code (latent 0)")
         return x
+    shape = latent_shape(generator, x.shape[0])
     if z is None:
-        z = torch.randn(x.shape[0], generator.latent, device=x.device)
-    if z.shape != (x.shape[0], generator.latent):
-        raise ValueError(f"{name}: expected a code of shape {(x.shape[0], generator.latent)}, got {tuple(z.shape)}")
+        z = torch.randn(shape, device=x.device)
+    if tuple(z.shape) != shape:
+        raise ValueError(f"{name}: expected a code of shape {shape}, got {tuple(z.shape)}")
+    if z.dim() == 4:
+        return torch.cat([x, z.to(x.dtype)], dim=1)
     return torch.cat([x, z.to(x.dtype)[:, :, None, None].expand(-1, -1, x.shape[2], x.shape[3])], dim=1)
 
 
@@ -326,14 +340,15 @@ class ResnetGenerator(nn.Module):
     4·ngf at S/4), ``blocks`` :class:`ResidualBlock` at S/4, two nearest 2x + 3x3 conv upsamplings (no
     checkerboard, Odena et al. 2016) and a 7x7 conv with tanh; :func:`group_norm` and ReLU between, every
     convolution reflection-padded. No path reaches a 1x1 bottleneck, so no level draws one image-wide layout (the
-    U-Net's dark-framed blobs on class pairs) and the borders are not zero-padded. ``latent`` is the U-Net's
-    (:func:`with_latent_code`).
+    U-Net's dark-framed blobs on class pairs) and the borders are not zero-padded. ``latent`` and ``latent_map``
+    are the U-Net's (:func:`with_latent_code`).
     """
 
     def __init__(self, size: int, ngf: int = 32, in_channels: int = 3, out_channels: int = 3, latent: int = 0,
-                 blocks: int = RESNET_BLOCKS) -> None:
+                 blocks: int = RESNET_BLOCKS, latent_map: bool = False) -> None:
         super().__init__()
         self.size, self.ngf, self.latent = check_size(size), ngf, checked_latent(latent)
+        self.latent_map = bool(latent_map)
         self.in_channels, self.out_channels = in_channels, out_channels
 
         def conv(i: int, o: int, kernel: int, stride: int = 1, bias: bool = False) -> nn.Conv2d:
@@ -374,29 +389,31 @@ class ResnetGenerator(nn.Module):
 
 def build_generator(settings: dict, in_channels: int = 3) -> nn.Module:
     """The generator ``settings`` name (``generator``: 'unet', the default, or 'resnet'), from its size, ngf,
-    latent and (the U-Net's) kernel, skips, upsample and padding keys. The ResNet always resizes and reflects, so it
+    latent, latent_map and (the U-Net's) kernel, skips, upsample and padding keys. The ResNet always resizes and reflects, so it
     ignores ``upsample`` and ``padding``; it has no skip connections, so ``skips`` other than all (None) is refused. Raises ValueError for
     that and for an unknown kind."""
     kind = settings.get("generator", "unet")
-    latent = settings.get("latent", 0)
+    latent, latent_map = settings.get("latent", 0), settings.get("latent_map", False)
     if kind == "unet":
         return UNetGenerator(settings["size"], settings["ngf"], settings["kernel"], in_channels=in_channels,
                              skips=settings.get("skips"), latent=latent,
-                             upsample=settings.get("upsample", "transpose"), padding=settings.get("padding", "zeros"))
+                             upsample=settings.get("upsample", "transpose"), padding=settings.get("padding", "zeros"),
+                             latent_map=latent_map)
     if kind == "resnet":
         if settings.get("skips") is not None:
             raise ValueError(f"class_gan.skips ({settings['skips']}) is a U-Net setting: set it to 'all' with "
                              f"class_gan.generator: resnet, which has no skip connections")
-        return ResnetGenerator(settings["size"], settings["ngf"], in_channels=in_channels, latent=latent)
+        return ResnetGenerator(settings["size"], settings["ngf"], in_channels=in_channels, latent=latent,
+                               latent_map=latent_map)
     raise ValueError(f"unknown generator {kind!r} (allowed: {', '.join(GENERATORS)})")
 
 
 def fixed_codes(generator: nn.Module, n: int, seed: int = 0) -> torch.Tensor | None:
-    """``n`` latent codes for ``generator`` (N x latent, z ~ N(0, I)) from a generator seeded with ``seed``, so
+    """``n`` latent codes for ``generator`` (:func:`latent_shape`, z ~ N(0, I)) from a generator seeded with ``seed``, so
     that translating and validating neither draw from nor depend on torch's global generator; None without
     a latent code."""
     latent = getattr(generator, "latent", 0)
-    return torch.randn(n, latent, generator=torch.Generator().manual_seed(seed)) if latent else None
+    return torch.randn(latent_shape(generator, n), generator=torch.Generator().manual_seed(seed)) if latent else None
 
 
 class GlobalDiscriminator(nn.Module):

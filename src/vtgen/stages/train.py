@@ -211,7 +211,7 @@ def objective_settings(settings: dict, translation: dict, objective: str, direct
     """The preset block with the class_gan keys of ``translation.class_gan`` added when that objective
     trains (the pix2pix settings stay exactly the preset's); a key given per direction ({v2t: w, t2v: w}, as
     ``nce`` is) takes ``direction``'s value. ``class_gan.iterations`` replaces the preset's iterations where
-    it is not null; ``class_gan.lr_decay`` 0 adds no key."""
+    it is not null; ``class_gan.lr_decay`` 0 and ``latent_map`` false add no key."""
     if objective != "class_gan":
         return settings
     if settings["batch_size"] < 2 or settings["batch_size"] % 2:
@@ -229,8 +229,9 @@ def objective_settings(settings: dict, translation: dict, objective: str, direct
     iterations = terms.pop("iterations", None)
     if iterations is not None:
         terms["iterations"] = iterations
-    if not terms.get("lr_decay"):
-        terms.pop("lr_decay", None)  # off adds no key: the settings, and the checkpoints hashed from them, stay as they were
+    for switch in ("lr_decay", "latent_map"):
+        if not terms.get(switch):
+            terms.pop(switch, None)  # off adds no key: the settings, and the checkpoints hashed from them, stay as they were
     return dict(settings, objective="class_gan", **terms)
 
 
