@@ -10,6 +10,7 @@ import torch
 
 from test_class_gan import CLASS_GAN, rendered_class_pairs, SETTINGS
 from vtgen.core.models import build_generator, fixed_codes, ResnetGenerator, UNetGenerator
+from vtgen.io.checkpoints import load_translator, save_generator
 from vtgen.stages.train import objective_settings, train_translator
 
 
@@ -66,3 +67,9 @@ def test_training_with_a_map_code_gives_a_generator_whose_outputs_vary_with_the_
     x = data.inputs[:1].float() / 127.5 - 1
     with torch.no_grad():
         assert (generator(x, codes[:1]) - generator(x, codes[1:])).abs().mean() > 1e-3
+    # the generator file rebuilds a map generator that computes the same image
+    save_generator(tmp_path / "generator.pt", generator, settings, "v2t", "all")
+    loaded, _ = load_translator(tmp_path / "generator.pt")
+    assert loaded.latent_map
+    with torch.no_grad():
+        assert torch.equal(loaded(x, codes[:1]), generator(x, codes[:1]))
