@@ -23,10 +23,9 @@ from PIL import Image
 from tqdm import tqdm
 
 from vtgen.core.conditioning import Conditioning
-from vtgen.core.gan import to_model_range, to_uint8
 from vtgen.io.images import atomic_output_dir, display_path, labelled_sheet, read_rgb8, stream_map, write_png
 from vtgen.io.tables import read_table
-from vtgen.core.models import fixed_codes
+from vtgen.core.translation import translate  # noqa: F401 (also this stage's public name)
 from vtgen.core.roi import image_tiles
 from vtgen.core.domain import DIRECTIONS
 from vtgen.io.tables import PAIR_COLUMNS, SPLIT_COLUMNS
@@ -35,29 +34,6 @@ from vtgen.io.tables import GENERATED_COLUMNS
 from vtgen.io.checkpoints import load_translator
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".npy"}
-
-
-@torch.no_grad()
-def translate(generator: torch.nn.Module, images: torch.Tensor, batch_size: int = 32,
-              conditioning: Conditioning | None = None, labels: torch.Tensor | None = None,
-              seed: int = 0) -> torch.Tensor:
-    """uint8 N x 3 x S x S -> uint8 N x 3 x S x S through ``generator`` (eval mode, no dropout); with a
-    ``conditioning`` other than none, ``labels`` (N class indices) says what each image is asked to be.
-    A generator with a latent code gets z ~ N(0, I) drawn from a generator seeded with ``seed`` (so the
-    same call gives the same images; another seed, another draw)."""
-    device = next(generator.parameters()).device
-    conditioning = conditioning or Conditioning()
-    if conditioning.needs_labels and (labels is None or len(labels) != len(images)):
-        raise ValueError(f"a model conditioned on '{conditioning.kind}' needs one class per image")
-    codes = fixed_codes(generator, len(images), seed)
-    out = []
-    for i in range(0, len(images), batch_size):
-        x = to_model_range(images[i:i + batch_size]).to(device)
-        if conditioning.kind != "none":
-            x = conditioning.condition(x, labels[i:i + batch_size] if conditioning.needs_labels else None)
-        z = None if codes is None else codes[i:i + batch_size].to(device)
-        out.append(to_uint8(generator(x, z)).cpu())
-    return torch.cat(out) if out else images.clone()
 
 
 def select_inputs(splits: pd.DataFrame, pairs: pd.DataFrame, direction: str, scope: str, train_share: float,

@@ -42,6 +42,7 @@ from vtgen.core.domain import DIRECTIONS
 from vtgen.core.gan import random_positioning, to_model_range, to_uint8
 from vtgen.core.metrics import colour_ssim
 from vtgen.core.models import count_parameters, fixed_codes
+from vtgen.core.referee import distinct_images, Referee, train_referee
 from vtgen.core.translator import LOSS_NAMES, STATE_KEYS, training_step_flops, TranslatorTraining
 from vtgen.io.checkpoints import input_preparation, save_atomic, save_generator
 from vtgen.io.images import atomic_output_dir, read_tiles
@@ -58,6 +59,7 @@ LOSS_FLOOR = 100.0  # ... or this, whichever is larger (BCE of 100 means logits 
 VAL_WORSE_FACTOR = 1.5  # final validation L1 at most 1.5 x the untrained generator's ...
 VAL_WORSE_MARGIN = 0.25  # ... or that plus 0.25 on [-1, 1], whichever is larger; checked only after
 GUIDE_SEED_OFFSET = 7919  # class_gan.semantic's classifier seed = translation.seed + this (not a classify.seeds entry)
+REFEREE_SEED_OFFSET = 104729  # class_gan.select_every's referee classifier seed = translation.seed + this
 MIN_VAL_CHECK_STEPS = 22  # steps, when BatchNorm's running statistics (momentum 0.1) are >= 90% from training
 CHECKPOINT_FIELDS = ("fingerprint", "step", "history", "seconds", "baseline", *STATE_KEYS, "sampler_rng", "torch_rng")
 CHANGED = {"params": "the training parameters (preset, seed, precision)", "data": "the training pairs",
@@ -211,7 +213,7 @@ def objective_settings(settings: dict, translation: dict, objective: str, direct
     """The preset block with the class_gan keys of ``translation.class_gan`` added when that objective
     trains (the pix2pix settings stay exactly the preset's); a key given per direction ({v2t: w, t2v: w}, as
     ``nce`` is) takes ``direction``'s value. ``class_gan.iterations`` replaces the preset's iterations where
-    it is not null; ``class_gan.lr_decay`` 0 and ``latent_map`` false add no key."""
+    it is not null; ``class_gan.lr_decay`` 0, ``latent_map`` false and ``select_every`` 0 add no key."""
     if objective != "class_gan":
         return settings
     if settings["batch_size"] < 2 or settings["batch_size"] % 2:
@@ -229,7 +231,7 @@ def objective_settings(settings: dict, translation: dict, objective: str, direct
     iterations = terms.pop("iterations", None)
     if iterations is not None:
         terms["iterations"] = iterations
-    for switch in ("lr_decay", "latent_map"):
+    for switch in ("lr_decay", "latent_map", "select_every"):
         if not terms.get(switch):
             terms.pop(switch, None)  # off adds no key: the settings, and the checkpoints hashed from them, stay as they were
     return dict(settings, objective="class_gan", **terms)
@@ -344,6 +346,7 @@ class TrainResult:
     device: str
     precision: str = "fp32"
     precision_reason: str = "as set"
+    selected: dict | None = None  # class_gan.select_every: {step, val_fid} of the snapshot returned, else None
 
 
 @dataclass(frozen=True)
@@ -362,6 +365,7 @@ class Job:
     stop: object = None  # callable(history) -> bool, checked after each per-class validation
     class_names: tuple[str, ...] = ()  # the class_gan objective's class index (sorted training classes)
     guide: torch.nn.Module | None = None  # class_gan.semantic's target-modality classifier (build_guide)
+    referee: Referee | None = None  # class_gan.select_every's judge of snapshots (build_referee)
 
     @property
     def class_gan(self) -> bool:
@@ -371,6 +375,11 @@ class Job:
         return bool(self.eval_every) and self.validation is not None and (
             step % self.eval_every == 0 or step == self.settings["iterations"])
 
+    def selects_at(self, step: int) -> bool:
+        """Steps where ``class_gan.select_every`` scores the output generator: every that many steps, and the last."""
+        every = self.settings.get("select_every") or 0
+        return self.referee is not None and every > 0 and (step % every == 0 or step == self.settings["iterations"])
+
     def remedy(self) -> str:
         return f"lower presets.{self.run.get('preset') or '<preset>'}.lr (now {self.settings['lr']:g})"
 
@@ -378,7 +387,8 @@ class Job:
 @dataclass
 class RunState:
     """What a checkpoint stores besides the networks: step, logged rows, seconds trained before this call, and
-    the divergence baselines measured at step 0 (generator weight norm, validation L1 or None)."""
+    the divergence baselines measured at step 0 (generator weight norm, validation L1 or None), and the
+    snapshot ``class_gan.select_every`` keeps: {step, val_fid, generator (state dict)} or None."""
 
     step: int = 0
     history: list[dict] = field(default_factory=list)
@@ -386,6 +396,7 @@ class RunState:
     baseline: dict = field(default_factory=dict)
     resumed_from: int = 0
     saved_step: int | None = None
+    selected: dict | None = None
 
     def last_good(self, path: Path | None) -> str:
         if self.saved_step is None:
@@ -491,7 +502,8 @@ def _start(job: Job) -> tuple[TranslatorTraining, torch.Generator, RunState]:
         else:
             print(f"train {job.label}: resuming from step {saved['step']} ({path})")
             return training, sampler, RunState(saved["step"], saved["history"], saved["seconds"], saved["baseline"],
-                                               resumed_from=saved["step"], saved_step=saved["step"])
+                                               resumed_from=saved["step"], saved_step=saved["step"],
+                                               selected=saved.get("selected"))
     elif reason is not None:
         print(f"train {job.label}: {reason}; training afresh")
     return training, sampler, RunState(baseline=_baseline(training, job.validation, job.conditioning))
@@ -510,7 +522,8 @@ def _save_checkpoint(job: Job, training: TranslatorTraining, sampler: torch.Gene
                                f"checkpoint not written; {state.last_good(job.checkpoint)}; {job.remedy()}")
     job.checkpoint.parent.mkdir(parents=True, exist_ok=True)
     save_atomic({"fingerprint": job.keys, "step": state.step, "history": state.history, "seconds": elapsed,
-                 "baseline": state.baseline, **training.state_dict(), "sampler_rng": sampler.get_state(),
+                 "baseline": state.baseline, "selected": state.selected, **training.state_dict(),
+                 "sampler_rng": sampler.get_state(),
                  "torch_rng": torch.get_rng_state(),
                  "cuda_rng": torch.cuda.get_rng_state() if job.device.type == "cuda" else None}, job.checkpoint)
     state.saved_step = state.step
@@ -582,8 +595,9 @@ def _logs_at(step: int, job: Job) -> bool:
 
 def _checkpoints_at(step: int, job: Job) -> bool:
     """Checkpoint steps: every checkpoint_every, the last, and every per-class validation (so a resumed run
-    sees the history its early-stopping decision was made on)."""
-    return step % job.run["checkpoint_every"] == 0 or step == job.settings["iterations"] or job.evaluates_at(step)
+    sees the history its early-stopping decision was made on), and every snapshot selection (likewise)."""
+    return (step % job.run["checkpoint_every"] == 0 or step == job.settings["iterations"] or job.evaluates_at(step)
+            or job.selects_at(step))
 
 
 def _window_row(losses: torch.Tensor, training: TranslatorTraining, job: Job, state: RunState,
@@ -596,7 +610,16 @@ def _window_row(losses: torch.Tensor, training: TranslatorTraining, job: Job, st
         row["val_l1"] = validation_l1(training.output_generator, job.validation, conditioning=job.conditioning)
     if job.evaluates_at(state.step):
         row["val_by_class"] = validation_by_class(training.output_generator, job.validation, job.conditioning)
+    if job.selects_at(state.step):
+        row["val_fid"] = job.referee.score(training.output_generator, job.conditioning)
     return row
+
+
+def _select(row: dict, training: TranslatorTraining, state: RunState) -> None:
+    """Keep a copy of the output generator when the row's validation FID is the lowest so far (ties: the earlier)."""
+    if "val_fid" in row and (state.selected is None or row["val_fid"] < state.selected["val_fid"]):
+        weights = {k: v.detach().cpu().clone() for k, v in training.output_generator.state_dict().items()}
+        state.selected = {"step": row["step"], "val_fid": row["val_fid"], "generator": weights}
 
 
 def _progress_bar(job: Job, initial: int, show: bool) -> tqdm:
@@ -619,6 +642,7 @@ def _end_window(window: list[torch.Tensor], training: TranslatorTraining, sample
     row = _window_row(losses, training, job, state, session)
     _check_range(row, training, job, state)
     _check_validation(row, job, state)
+    _select(row, training, state)
     state.history.append(row)
     if _checkpoints_at(state.step, job):
         _save_checkpoint(job, training, sampler, state, state.seconds_before + session)
@@ -631,7 +655,7 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
                      checkpoint_dir: Path | None = None, on_log=None, progress: bool = True,
                      validation: PairData | None = None, conditioning: Conditioning | None = None,
                      eval_every: int | None = None, stop=None, label: str | None = None,
-                     guide: torch.nn.Module | None = None) -> TrainResult:
+                     guide: torch.nn.Module | None = None, referee: Referee | None = None) -> TrainResult:
     """Train one conditional GAN on ``data`` for ``settings['iterations']`` steps of :class:`TranslatorTraining`.
 
     ``settings`` is a presets block (its keys plus batch_size, iterations, noise); ``run`` holds device,
@@ -640,7 +664,9 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
     L1 error on the aligned pairs of ``validation``. ``conditioning`` (default none) adds its channels to
     every generator input. With ``eval_every``, every that many steps the row also holds ``val_by_class``
     (:func:`validation_by_class`) and training ends early once ``stop(history)`` is true (early stopping).
-    ``guide`` is the classifier ``class_gan.semantic`` needs (:func:`build_guide`).
+    ``guide`` is the classifier ``class_gan.semantic`` needs (:func:`build_guide`). With ``referee`` and
+    ``class_gan.select_every`` n > 0, every n steps and at the last the row holds ``val_fid`` (:meth:`Referee.score`)
+    and the run returns the snapshot with the lowest (its step and value in ``TrainResult.selected``).
     A non-finite or out-of-range loss or weight raises
     TrainingDiverged naming the step, the quantity and the last good checkpoint.
     """
@@ -652,7 +678,7 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
     job = Job(f"{direction}/{scope}{f' ({label})' if label else ''}", settings, run, device,
               Path(checkpoint_dir) / CHECKPOINT_NAME if checkpoint_dir else None,
               checkpoint_keys(settings, run, direction, scope, data, conditioning), validation,
-              conditioning or Conditioning(), eval_every, stop, tuple(sorted(set(data.classes))), guide)
+              conditioning or Conditioning(), eval_every, stop, tuple(sorted(set(data.classes))), guide, referee)
     training, sampler, state = _start(job)
     for row in state.history:  # a resumed run logs the rows it inherits again, so the log is whole
         if on_log:
@@ -682,8 +708,12 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
         raise TrainingDiverged(f"{job.label}: non-finite generator weights at step {state.step} ({_describe(bad)}); "
                                f"{state.last_good(job.checkpoint)}; {job.remedy()}")
     seconds = state.seconds_before + time.perf_counter() - started
-    return TrainResult(training.output_generator.cpu(), state.history, state.step, seconds, state.resumed_from, str(device),
-                       precision, precision_reason)
+    generator = training.output_generator
+    if state.selected is not None:
+        generator.load_state_dict(state.selected["generator"])
+    selected = None if state.selected is None else {k: state.selected[k] for k in ("step", "val_fid")}
+    return TrainResult(generator.cpu(), state.history, state.step, seconds, state.resumed_from, str(device),
+                       precision, precision_reason, selected)
 
 
 def _live_logger(folder: Path):
@@ -709,8 +739,8 @@ def _live_logger(folder: Path):
 
 def train_capacity_auto(data: PairData, validation: PairData, settings: dict, run: dict, direction: str, scope: str,
                         checkpoint_dir: Path | None = None, on_log=None, progress: bool = True,
-                        conditioning: Conditioning | None = None,
-                        guide: torch.nn.Module | None = None) -> tuple[TrainResult, dict, dict]:
+                        conditioning: Conditioning | None = None, guide: torch.nn.Module | None = None,
+                        referee: Referee | None = None) -> tuple[TrainResult, dict, dict]:
     """``translation.capacity: auto``: the smallest width and fewest iterations that reach the largest width's
     validation quality, per class, for one model.
 
@@ -719,7 +749,8 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
        largest width's. The model takes the largest width any class needs.
     2. Early stopping: that width's probe run continues (from its checkpoint) up to the preset's iterations,
        validated per class every ``eval_every`` steps, and stops once every class has settled
-       (:func:`settled_classes`: its best rose by at most ``tolerance`` over ``patience`` validations).
+       (:func:`settled_classes`: its best rose by at most ``tolerance`` over ``patience`` validations); with
+       ``referee``, this continuation selects its snapshot as :func:`train_translator` says.
 
     Returns (the result, the settings of the chosen model, the ``capacity`` record of train.json: per class the
     width needed and the step it settled at, and the compute - GFLOP from :func:`training_step_flops` and
@@ -752,7 +783,7 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
                              data, at[chosen], dict(run, resume=True), direction, scope, folder(chosen),
                              on_log=on_log, progress=progress, validation=validation, conditioning=conditioning,
                              eval_every=cap["eval_every"], stop=lambda history: all_settled(history, tolerance, patience),
-                             label=f"width {chosen}, early stopping", guide=guide)
+                             label=f"width {chosen}, early stopping", guide=guide, referee=referee)
     if chosen in results and final is not results[chosen] and final.resumed_from == probe_steps:
         final.resumed_from = results[chosen].resumed_from  # continuing this call's own probe is not a resume
     settled = settled_classes(final.history, tolerance, patience)
@@ -838,9 +869,7 @@ def build_guide(settings: dict, data: PairData, classify: dict, seed: int) -> to
     names = sorted(set(data.classes))
     if len(names) < 2:
         raise ValueError(f"class_gan.semantic needs at least 2 classes to tell apart, the pairs have {names}")
-    flat = data.targets.reshape(len(data.targets), -1)
-    _, first = np.unique(flat.numpy(), axis=0, return_index=True)  # class pairs repeat a target; keep one of each
-    rows = torch.from_numpy(np.sort(first))
+    rows = distinct_images(data.targets)  # class pairs repeat a target; keep one of each
     images = data.targets[rows]
     position = {name: i for i, name in enumerate(names)}
     labels = torch.tensor([position[data.classes[int(i)]] for i in rows], dtype=torch.int64)
@@ -851,6 +880,34 @@ def build_guide(settings: dict, data: PairData, classify: dict, seed: int) -> to
     print(f"class_gan.semantic: target classifier trained on {len(images)} training targets of {len(names)} classes "
           f"({cfg['epochs']} epochs), training accuracy {run.test_accuracy[-1]:.3f}")
     return run.model.eval()
+
+
+def build_referee(settings: dict, data: PairData, validation: PairData | None, classify: dict,
+                  seed: int) -> Referee | None:
+    """``class_gan.select_every``'s judge of snapshots (:func:`vtgen.core.referee.train_referee`: a classifier of
+    the target modality trained on the distinct training targets, seeded with ``seed`` + :data:`REFEREE_SEED_OFFSET`,
+    scoring the translated validation inputs); None when the setting is 0 or absent, or without validation pairs."""
+    if not settings.get("select_every") or validation is None:
+        return None
+    referee = train_referee(data.targets, data.classes, validation.inputs, validation.classes, classify,
+                            seed + REFEREE_SEED_OFFSET)
+    print(f"class_gan.select_every: referee classifier trained on {len(referee.reference)} training targets; "
+          f"every {settings['select_every']} steps the validation FID of {len(referee.inputs)} translated inputs")
+    return referee
+
+
+def selection_record(settings: dict, result: TrainResult, validation: PairData | None) -> dict:
+    """What train.json says about ``class_gan.select_every``: which step's generator was kept and why."""
+    every = settings.get("select_every") or 0
+    if not every:
+        return {"every": 0, "step": result.steps, "reason": "the last step's generator (class_gan.select_every 0)"}
+    if result.selected is None:
+        why = "no validation pairs" if validation is None else "no selection step was reached"
+        return {"every": every, "step": result.steps, "reason": f"the last step's generator ({why} to select by)"}
+    scores = {r["step"]: round(r["val_fid"], 3) for r in result.history if "val_fid" in r}
+    return {"every": every, "step": result.selected["step"], "val_fid": round(result.selected["val_fid"], 3),
+            "val_fid_by_step": scores,
+            "reason": "the snapshot with the lowest classifier-view FID of its translated validation inputs"}
 
 
 def _summary(result: TrainResult, data: PairData, validation: PairData | None, settings: dict, run: dict,
@@ -900,6 +957,7 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
     objective, objective_reason = resolve_objective(run["objective"], data)
     settings = objective_settings(settings, run, objective, direction)
     guide = build_guide(settings, data, params["classify"], run["seed"])
+    referee = build_referee(settings, data, validation, params["classify"], run["seed"])
     print(f"train {direction}/{scope}: {len(data.targets)} training pairs ({int(data.aligned.sum())} aligned), "
           f"preset '{run['preset']}' at {settings['size']} px, {settings['iterations']} iterations of batch "
           f"{settings['batch_size']}, precision {run['precision']}, conditioning {conditioning.kind}, "
@@ -909,11 +967,11 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
         checkpoints = Path(checkpoint_root) / direction / scope
         if run["capacity"]["mode"] == "auto" and validation is not None:
             result, settings, capacity = train_capacity_auto(data, validation, settings, run, direction, scope,
-                                                             checkpoints, log, progress, conditioning, guide)
+                                                             checkpoints, log, progress, conditioning, guide, referee)
         else:
             result = train_translator(data, settings, run, direction, scope, checkpoints, on_log=log,
                                       progress=progress, validation=validation, conditioning=conditioning,
-                                      guide=guide)
+                                      guide=guide, referee=referee)
             capacity = {"mode": "fixed", "reason": "as set" if run["capacity"]["mode"] == "fixed" else
                         "capacity auto needs validation pairs and this scope has none; the preset was used"}
         live.end()
@@ -922,6 +980,8 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
         summary = _summary(result, data, validation, settings, run, direction, scope, conditioning)
         summary["capacity"] = capacity
         summary["objective"] = {"name": objective, "reason": objective_reason}
+        if objective == "class_gan":
+            summary["selection"] = selection_record(settings, result, validation)
         (tmp / "train.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"train {direction}/{scope}: {result.steps} steps in {result.seconds:.1f} s "
           f"({summary['seconds_per_iteration']:.3f} s/it) -> {out_dir}")

@@ -1,0 +1,112 @@
+"""class_gan.select_every: a run scores its generator every n steps by the classifier-view FID of its translated
+validation inputs and yields the best snapshot (the referee's scale, the choice, a resumed run's choice, the
+switch's off state and train.json's record)."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+from torch import nn
+
+from test_class_gan import CLASS_GAN, rendered_class_pairs, SETTINGS
+from vtgen.core.conditioning import Conditioning
+from vtgen.stages.train import objective_settings, selection_record, train_translator
+from vtgen.core.referee import distinct_images, train_referee
+
+CLASSIFY = {"size": 32, "width": 0.25, "epochs": 4, "batch_size": 8, "lr": 1e-3}
+RUN = dict(device="cpu", precision="fp32", threads=1, checkpoint_every=100, resume=False, log_every=1, seed=0)
+
+
+class Echo(nn.Module):
+    """A 'generator' that returns its input image: translating real targets gives the real targets back."""
+
+    latent = 0
+
+    def __init__(self):
+        super().__init__()
+        self.unused = nn.Parameter(torch.zeros(1))  # translate reads the device from a parameter
+
+    def forward(self, x, z=None):
+        return x[:, :3]
+
+
+class Flat(Echo):
+    def forward(self, x, z=None):
+        return torch.zeros_like(x[:, :3])
+
+
+class Scripted:
+    """A referee whose scores are given in advance (one per call), to test the choice apart from the metric."""
+
+    def __init__(self, scores):
+        self.scores = list(scores)
+
+    def score(self, generator, conditioning):
+        return self.scores.pop(0)
+
+
+def test_the_referee_scores_real_images_near_zero_and_a_flat_image_far_off():
+    data = rendered_class_pairs(4, 32, seed=0)
+    referee = train_referee(data.targets, data.classes, data.targets, data.classes, CLASSIFY, seed=0)
+    assert len(referee.reference) == len(distinct_images(data.targets)) == len(data.targets)
+    real = referee.score(Echo(), Conditioning())
+    flat = referee.score(Flat(), Conditioning())
+    assert real < 1e-6 < flat
+    assert flat > 100 * max(real, 1e-6)
+
+
+def test_the_run_yields_the_snapshot_with_the_lowest_validation_fid():
+    data = rendered_class_pairs(4, 32, seed=0)
+    settings = dict(SETTINGS, **CLASS_GAN, iterations=6, select_every=2)
+    chosen = train_translator(data, settings, RUN, "v2t", "all", progress=False, referee=Scripted([3.0, 1.0, 2.0]))
+    assert [r.get("val_fid") for r in chosen.history if "val_fid" in r] == [3.0, 1.0, 2.0]
+    assert [r["step"] for r in chosen.history if "val_fid" in r] == [2, 4, 6]
+    assert chosen.selected == {"step": 4, "val_fid": 1.0} and chosen.steps == 6
+    # the weights are step 4's: a run of exactly 4 steps (same seed, constant learning rate) ends there
+    four = train_translator(data, dict(settings, iterations=4, select_every=0), RUN, "v2t", "all", progress=False)
+    last = train_translator(data, dict(settings, select_every=0), RUN, "v2t", "all", progress=False)
+    for name, weight in chosen.generator.state_dict().items():
+        assert torch.equal(weight, four.generator.state_dict()[name]), name
+    assert any(not torch.equal(w, last.generator.state_dict()[n]) for n, w in chosen.generator.state_dict().items())
+    assert four.selected is None  # select_every 0 keeps the last step's generator
+
+
+def test_a_resumed_run_selects_as_an_uninterrupted_one(tmp_path):
+    data = rendered_class_pairs(4, 32, seed=0)
+    validation = rendered_class_pairs(2, 32, seed=1)
+    referee = train_referee(data.targets, data.classes, validation.inputs, validation.classes, CLASSIFY, seed=0)
+    settings = dict(SETTINGS, **CLASS_GAN, iterations=6, select_every=2)
+    whole = train_translator(data, settings, RUN, "v2t", "all", progress=False, referee=referee)
+    run = dict(RUN, checkpoint_every=2, resume=True)
+    train_translator(data, dict(settings, iterations=4), run, "v2t", "all", tmp_path, progress=False, referee=referee)
+    resumed = train_translator(data, settings, run, "v2t", "all", tmp_path, progress=False, referee=referee)
+    assert resumed.resumed_from == 4
+    assert resumed.selected == whole.selected
+    assert [r["val_fid"] for r in resumed.history if "val_fid" in r] == [r["val_fid"] for r in whole.history if "val_fid" in r]
+    for name, weight in whole.generator.state_dict().items():
+        assert torch.equal(weight, resumed.generator.state_dict()[name]), name
+
+
+def test_off_adds_no_settings_key_a_value_may_be_given_per_direction_and_train_json_says_which_step(default_params):
+    from vtgen.io.params import ParamsError, validate_params
+    params = copy.deepcopy(default_params)
+    assert params["translation"]["class_gan"]["select_every"] == 0
+    plain = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v")
+    assert "select_every" not in plain  # so the default's checkpoint keys are those of the code before the switch
+    params["translation"]["class_gan"]["select_every"] = {"v2t": 0, "t2v": 500}
+    validate_params(params)
+    assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v")["select_every"] == 500
+    assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t") == plain
+    params["translation"]["class_gan"]["select_every"] = -1
+    with pytest.raises(ParamsError, match=r"translation\.class_gan\.select_every"):
+        validate_params(params)
+    data = rendered_class_pairs(4, 32, seed=0)
+    settings = dict(SETTINGS, **CLASS_GAN, iterations=4, select_every=2)
+    result = train_translator(data, settings, RUN, "v2t", "all", progress=False, referee=Scripted([2.0, 5.0]))
+    record = selection_record(settings, result, data)
+    assert record["step"] == 2 and record["val_fid"] == 2.0 and record["val_fid_by_step"] == {2: 2.0, 4: 5.0}
+    no_validation = train_translator(data, settings, RUN, "v2t", "all", progress=False)
+    assert selection_record(settings, no_validation, None) == {
+        "every": 2, "step": 4, "reason": "the last step's generator (no validation pairs to select by)"}
