@@ -110,3 +110,13 @@ def test_off_adds_no_settings_key_a_value_may_be_given_per_direction_and_train_j
     no_validation = train_translator(data, settings, RUN, "v2t", "all", progress=False)
     assert selection_record(settings, no_validation, None) == {
         "every": 2, "step": 4, "reason": "the last step's generator (no validation pairs to select by)"}
+
+
+def test_the_report_names_the_step_whose_generator_was_kept():
+    from vtgen.io.report_tables import models_table
+    chosen = {"every": 1000, "step": 10000, "val_fid": 116.1, "reason": "the snapshot with the lowest ..."}
+    table = models_table([{"direction": "t2v", "scope": "all", "steps": 12000, "selection": chosen},
+                          {"direction": "v2t", "scope": "all", "steps": 1500}])
+    assert table["iterations"].tolist() == [12000, 1500]
+    assert table["generator kept"].tolist()[0] == 10000 and table["generator kept"].isna().tolist()[1]
+    assert table["kept because"].tolist()[0] == chosen["reason"]

@@ -291,7 +291,9 @@ def models_table(runs: list[dict]) -> pd.DataFrame:
         "conditioning": r.get("conditioning", "none") if r.get("status", "ok") == "ok" else None,
         "objective": (r.get("objective") or {}).get("name"), "objective chosen because": (r.get("objective") or {}).get("reason"),
         "capacity": (r.get("capacity") or {}).get("mode"), "width (ngf)": (r.get("settings") or {}).get("ngf"),
-        "size": (r.get("settings") or {}).get("size"), "iterations": r.get("steps"), "wall s": r.get("wall_seconds"),
+        "size": (r.get("settings") or {}).get("size"), "iterations": r.get("steps"),
+        "generator kept": (r.get("selection") or {}).get("step"), "kept because": (r.get("selection") or {}).get("reason"),
+        "wall s": r.get("wall_seconds"),
         "s/iteration": r.get("seconds_per_iteration"), "final val L1": r.get("final_val_l1"),
         "device": r.get("device"), "precision": r.get("precision"), "precision chosen because": r.get("precision_reason"),
     } for r in runs])
