@@ -120,3 +120,13 @@ def test_the_report_names_the_step_whose_generator_was_kept():
     assert table["iterations"].tolist() == [12000, 1500]
     assert table["generator kept"].tolist()[0] == 10000 and table["generator kept"].isna().tolist()[1]
     assert table["kept because"].tolist()[0] == chosen["reason"]
+
+
+def test_without_validation_pairs_the_referee_is_not_built_and_the_log_says_why(capsys):
+    from vtgen.stages.train import build_referee
+    data = rendered_class_pairs(4, 32, seed=0)
+    assert build_referee(dict(SETTINGS, select_every=0), data, data, CLASSIFY, seed=0) is None
+    assert build_referee(dict(SETTINGS, select_every=250), data, None, CLASSIFY, seed=0) is None
+    assert "no validation split to select by; the run keeps the last step's generator" in capsys.readouterr().out
+    referee = build_referee(dict(SETTINGS, select_every=250), data, data, CLASSIFY, seed=0)
+    assert referee is not None and len(referee.inputs) == len(data.inputs)

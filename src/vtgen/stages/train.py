@@ -887,7 +887,11 @@ def build_referee(settings: dict, data: PairData, validation: PairData | None, c
     """``class_gan.select_every``'s judge of snapshots (:func:`vtgen.core.referee.train_referee`: a classifier of
     the target modality trained on the distinct training targets, seeded with ``seed`` + :data:`REFEREE_SEED_OFFSET`,
     scoring the translated validation inputs); None when the setting is 0 or absent, or without validation pairs."""
-    if not settings.get("select_every") or validation is None:
+    if not settings.get("select_every"):
+        return None
+    if validation is None:
+        print(f"class_gan.select_every: {settings['select_every']} is set, but the pairs have no validation split "
+              f"to select by; the run keeps the last step's generator (train.json: selection)")
         return None
     referee = train_referee(data.targets, data.classes, validation.inputs, validation.classes, classify,
                             seed + REFEREE_SEED_OFFSET)
