@@ -71,6 +71,10 @@ def test_the_run_yields_the_snapshot_with_the_lowest_validation_fid():
         assert torch.equal(weight, four.generator.state_dict()[name]), name
     assert any(not torch.equal(w, last.generator.state_dict()[n]) for n, w in chosen.generator.state_dict().items())
     assert four.selected is None  # select_every 0 keeps the last step's generator
+    # a selection step that is not a logging step still closes a window and is scored
+    odd = train_translator(data, dict(settings, select_every=2), dict(RUN, log_every=5), "v2t", "all", progress=False,
+                           referee=Scripted([4.0, 3.0, 5.0]))
+    assert [r["step"] for r in odd.history if "val_fid" in r] == [2, 4, 6] and odd.selected["step"] == 4
 
 
 def test_a_resumed_run_selects_as_an_uninterrupted_one(tmp_path):

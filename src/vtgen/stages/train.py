@@ -590,7 +590,7 @@ def _check_validation(row: dict, job: Job, state: RunState) -> None:
 def _logs_at(step: int, job: Job) -> bool:
     run = job.run
     return (step % run["log_every"] == 0 or step % run["checkpoint_every"] == 0 or step == job.settings["iterations"]
-            or job.evaluates_at(step))
+            or job.evaluates_at(step) or job.selects_at(step))
 
 
 def _checkpoints_at(step: int, job: Job) -> bool:
