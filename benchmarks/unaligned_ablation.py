@@ -44,6 +44,7 @@ from vtgen.core.classifier import predict, train_classifier, wilson_interval
 from vtgen.core.distribution import (classifier_encoder, diversity_ratio, fid, flat_colour_set, grey_pixels,
                                      image_features, kid, mean_image_set, median_interval, memorisation, prdc_scores)
 from vtgen.core.domain import DIRECTIONS
+from vtgen.core.referee import at_side as resized  # area-resized uint8 tiles at the classifier's side
 from vtgen.io.images import labelled_sheet, read_tiles, write_png
 from vtgen.io.params import model_settings, validate_params
 from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
@@ -51,12 +52,6 @@ from vtgen.stages.generate import translate
 from vtgen.stages.train import (build_conditioning, build_guide, load_pair_data, objective_settings,
                                 resolve_objective, train_translator)
 from translation_quality import parse_variant  # the same name:key=value;... variants (benchmarks/ is on sys.path)
-
-def resized(images: torch.Tensor, side: int) -> torch.Tensor:
-    if images.shape[-1] == side:
-        return images
-    return F.interpolate(images.float(), size=(side, side), mode="area").round().clamp(0, 255).to(torch.uint8)
-
 
 def real_classifier(splits, modality: str, params: dict, root: Path, classes: list[str]):
     """The classify stage's real-only classifier of ``modality`` (seed 0) and its test accuracy with n."""

@@ -42,7 +42,7 @@ from vtgen.core.domain import DIRECTIONS
 from vtgen.core.gan import random_positioning, to_model_range, to_uint8
 from vtgen.core.metrics import colour_ssim
 from vtgen.core.models import count_parameters, fixed_codes
-from vtgen.core.referee import distinct_images, Referee, train_referee
+from vtgen.core.referee import at_side, distinct_images, Referee, train_referee
 from vtgen.core.translator import LOSS_NAMES, STATE_KEYS, training_step_flops, TranslatorTraining
 from vtgen.io.checkpoints import input_preparation, save_atomic, save_generator
 from vtgen.io.images import atomic_output_dir, read_tiles
@@ -874,8 +874,7 @@ def build_guide(settings: dict, data: PairData, classify: dict, seed: int) -> to
     position = {name: i for i, name in enumerate(names)}
     labels = torch.tensor([position[data.classes[int(i)]] for i in rows], dtype=torch.int64)
     cfg = {"size": int(classify["size"]), **{k: classify[k] for k in ("width", "epochs", "batch_size", "lr")}}
-    if images.shape[-1] != cfg["size"]:
-        images = F.interpolate(images.float(), size=(cfg["size"],) * 2, mode="area").round().to(torch.uint8)
+    images = at_side(images, cfg["size"])
     run = train_classifier(images, labels, images, labels, len(names), cfg, seed + GUIDE_SEED_OFFSET)
     print(f"class_gan.semantic: target classifier trained on {len(images)} training targets of {len(names)} classes "
           f"({cfg['epochs']} epochs), training accuracy {run.test_accuracy[-1]:.3f}")
