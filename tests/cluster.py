@@ -310,12 +310,30 @@ def start_slurm(root: Path) -> Slurm:
 
 
 def _link_system_conf(conf: Path) -> None:
-    if SYSTEM_CONF.is_symlink() and not SYSTEM_CONF.exists():
-        SYSTEM_CONF.unlink()  # left behind by a test run that was killed
+    if SYSTEM_CONF.is_symlink() and (not SYSTEM_CONF.exists() or _stale_test_conf(SYSTEM_CONF)):
+        SYSTEM_CONF.unlink()  # left behind by a test run that was killed (its folder gone, or kept by pytest)
     if SYSTEM_CONF.exists() or SYSTEM_CONF.is_symlink():
         raise Unavailable(f"{SYSTEM_CONF} exists (a real SLURM here?); the test cluster would need that path")
     SYSTEM_CONF.parent.mkdir(parents=True, exist_ok=True)
     SYSTEM_CONF.symlink_to(conf)
+
+
+def _stale_test_conf(conf: Path) -> bool:
+    """Whether ``conf`` is a test cluster's configuration (the first line :func:`_slurm_conf` writes) whose
+    slurmctld no longer runs (its pid file gone or naming no process): a killed run's, safe to replace."""
+    try:
+        text = conf.read_text()
+    except OSError:
+        return False
+    if not text.startswith("# a one-node test cluster written by tests/cluster.py"):
+        return False
+    pid_file = next((Path(line.split("=", 1)[1]) for line in text.splitlines()
+                     if line.startswith("SlurmctldPidFile=")), None)
+    try:
+        os.kill(int(pid_file.read_text().strip()), 0)
+    except (AttributeError, OSError, ValueError):
+        return True
+    return False
 
 
 def _unlink_system_conf(conf: Path) -> None:
