@@ -27,6 +27,9 @@ here on the real training images of the run with the classify stage's settings):
 
 A variant is ``name:key=value;key=value``; keys are ``translation`` keys (objective, conditioning as one kind
 for this direction), ``class_gan.<key>`` or preset keys. SYNTHETIC results must be labelled as such.
+``--truncation 1 0.5 0`` measures each trained generator once per psi its latent codes are scaled by
+(``translate``'s truncation); ``--model <run>/models/v2t/all`` measures a main job's trained generator instead
+of training one.
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ from vtgen.core.distribution import (classifier_encoder, diversity_ratio, fid, f
                                      image_features, kid, mean_image_set, median_interval, memorisation, prdc_scores)
 from vtgen.core.domain import DIRECTIONS
 from vtgen.core.referee import at_side as resized  # area-resized uint8 tiles at the classifier's side
+from vtgen.io.checkpoints import load_translator
 from vtgen.io.images import labelled_sheet, read_tiles, write_png
 from vtgen.io.params import model_settings, validate_params
 from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
@@ -79,7 +83,9 @@ def class_diversity(generated: torch.Tensor, real: torch.Tensor, classes_gen: np
     return median_interval(ratios)
 
 
-def run_variant(params, pairs, splits, direction, overrides, seed, iterations, threads, root, context) -> dict:
+def run_variant(params, pairs, splits, direction, overrides, seed, iterations, threads, root, context,
+                truncations=(1.0,)) -> list[dict]:
+    """Train one variant at one seed; one result per truncation psi of the test translations' latent codes."""
     settings = dict(model_settings(params), iterations=iterations)
     run = dict(params["translation"], seed=seed, threads=threads, checkpoint_every=10**9, resume=False)
     run["class_gan"] = dict(run["class_gan"])
@@ -105,9 +111,13 @@ def run_variant(params, pairs, splits, direction, overrides, seed, iterations, t
     seconds = time.perf_counter() - started
     inputs, input_classes = context["test_inputs"], context["test_input_classes"]
     labels = conditioning.labels(list(input_classes)) if conditioning.needs_labels else None
-    generated = translate(result.generator.eval(), inputs, conditioning=conditioning, labels=labels)
-    return {"objective": objective, "seconds": seconds, "generated": generated,
-            **goal_numbers(generated, input_classes, context)}
+    results = []
+    for psi in truncations:
+        generated = translate(result.generator.eval(), inputs, conditioning=conditioning, labels=labels,
+                              truncation=psi)
+        results.append({"objective": objective, "seconds": seconds, "generated": generated, "truncation": psi,
+                        **goal_numbers(generated, input_classes, context)})
+    return results
 
 
 def write_sheet(path: Path, generated: torch.Tensor, context: dict, per_class: int = 4) -> None:
@@ -220,13 +230,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run", default=".", help="a run folder holding params.yaml and data/pairs")
     parser.add_argument("--direction", choices=list(DIRECTIONS), default="v2t")
-    parser.add_argument("--variant", action="append", required=True, help="name:key=value;key=value")
+    parser.add_argument("--variant", action="append", default=[], help="name:key=value;key=value")
+    parser.add_argument("--model", type=Path, help="measure this trained model folder (e.g. <run>/models/v2t/all) "
+                                                   "instead of training variants")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--iterations", type=int, default=1500)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--truncation", type=float, nargs="+", default=[1.0],
+                        help="psi values the test translations' latent codes are scaled by (one row each; 1 = plain draw)")
     parser.add_argument("--sheets", type=Path, help="folder for one PNG per run, variant and seed: per class, test inputs, "
                                                    "their translations and real test targets (and the outputs as .pt)")
     args = parser.parse_args()
+    if not args.variant and not args.model:
+        parser.error("give --variant (train and measure) or --model (measure a trained model)")
     root = Path(args.run).resolve()
     params = validate_params(yaml.safe_load((root / "params.yaml").read_text()))
     torch.set_num_threads(args.threads)
@@ -240,18 +256,37 @@ def main() -> None:
               "KID ± 95% | GAN-test [95%] | GAN-test, blurred | memorisation | edge outliers | train s |\n"
               "|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [row(name, "-", r) for name, r in context["references"].items()]
+    if args.model:
+        generator, meta = load_translator(args.model)
+        if meta["direction"] != args.direction:
+            parser.error(f"{args.model} translates {meta['direction']}, not {args.direction}")
+        inputs, input_classes = context["test_inputs"], context["test_input_classes"]
+        conditioning = meta["conditioning"]
+        labels = conditioning.labels(list(input_classes)) if conditioning.needs_labels else None
+        for psi in args.truncation:
+            generated = translate(generator, inputs, conditioning=conditioning, labels=labels, truncation=psi)
+            result = {"seconds": 0.0, **goal_numbers(generated, input_classes, context)}
+            lines.append(row(f"{args.model.parent.parent.parent.name} model, psi {psi:g}", "-", result))
+            if args.sheets:
+                args.sheets.mkdir(parents=True, exist_ok=True)
+                sheet = args.sheets / f"{root.name}_{args.direction}_model_psi{psi:g}.png"
+                write_sheet(sheet, generated, context)
+            print(lines[-1], flush=True)
     for text in args.variant:
         name, overrides = parse_variant(text)
         for seed in args.seeds:
-            result = run_variant(params, pairs, splits, args.direction, overrides, seed, args.iterations,
-                                 args.threads, root, context)
-            lines.append(row(f"{name} ({result['objective']})", seed, result))
-            if args.sheets:
-                args.sheets.mkdir(parents=True, exist_ok=True)
-                sheet = args.sheets / f"{root.name}_{args.direction}_{name}_{seed}.png"  # the run's name: one folder, many runs
-                write_sheet(sheet, result["generated"], context)
-                torch.save(result["generated"], sheet.with_suffix(".pt"))  # the test outputs, to measure again
-            print(lines[-1], flush=True)
+            for result in run_variant(params, pairs, splits, args.direction, overrides, seed, args.iterations,
+                                      args.threads, root, context, args.truncation):
+                psi = result["truncation"]
+                label = name if psi == 1.0 else f"{name}, psi {psi:g}"
+                lines.append(row(f"{label} ({result['objective']})", seed, result))
+                if args.sheets:
+                    args.sheets.mkdir(parents=True, exist_ok=True)
+                    suffix = "" if psi == 1.0 else f"_psi{psi:g}"  # the run's name: one folder, many runs
+                    sheet = args.sheets / f"{root.name}_{args.direction}_{name}_{seed}{suffix}.png"
+                    write_sheet(sheet, result["generated"], context)
+                    torch.save(result["generated"], sheet.with_suffix(".pt"))  # the test outputs, to measure again
+                print(lines[-1], flush=True)
     print("\n" + header + "\n" + "\n".join(lines))
 
 

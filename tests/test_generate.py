@@ -15,7 +15,8 @@ from conftest import pair_tables
 from vtgen.cli import main
 from vtgen.io.checkpoints import load_translator
 from vtgen.stages.generate import other_codes, run_generate, select_inputs, translate, translate_files
-from vtgen.core.models import UNetGenerator
+from vtgen.core.gan import to_model_range, to_uint8
+from vtgen.core.models import UNetGenerator, fixed_codes
 from vtgen.io.checkpoints import input_preparation, save_generator
 from vtgen.io.images import read_tiles
 from vtgen.core.roi import Box, cut_tile
@@ -53,6 +54,27 @@ def test_translate_is_deterministic_and_keeps_shape(model_dir):
     first, second = translate(generator, images, batch_size=2), translate(generator, images, batch_size=5)
     assert first.dtype == torch.uint8 and first.shape == images.shape
     assert torch.equal(first, second)  # eval mode: no dropout, batch size does not matter
+
+
+def test_truncation_scales_the_latent_codes_towards_the_mean_code():
+    """psi 1 is the plain draw bit for bit; psi scales every code (psi 0: the mean code, so the seed no longer
+    matters); psi outside [0, 1] is refused."""
+    torch.manual_seed(0)
+    generator = UNetGenerator(32, 8, 4, latent=4).eval()
+    images = torch.randint(0, 256, (6, 3, 32, 32), dtype=torch.uint8)
+    plain = translate(generator, images, seed=3)
+    assert torch.equal(translate(generator, images, seed=3, truncation=1.0), plain)
+    with torch.no_grad():
+        codes = fixed_codes(generator, len(images), 3)
+        expected = to_uint8(generator(to_model_range(images), 0.5 * codes))
+    assert torch.equal(translate(generator, images, seed=3, truncation=0.5), expected)
+    assert not torch.equal(expected, plain)
+    assert torch.equal(translate(generator, images, seed=3, truncation=0.0),
+                       translate(generator, images, seed=7, truncation=0.0))
+    assert not torch.equal(translate(generator, images, seed=3), translate(generator, images, seed=7))
+    for psi in (-0.1, 1.5):
+        with pytest.raises(ValueError, match="truncation must lie in"):
+            translate(generator, images, truncation=psi)
 
 
 def test_run_generate_writes_images_and_a_linked_table(tmp_path, model_dir, monkeypatch):

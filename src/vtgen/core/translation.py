@@ -13,16 +13,22 @@ from vtgen.core.models import fixed_codes
 @torch.no_grad()
 def translate(generator: torch.nn.Module, images: torch.Tensor, batch_size: int = 32,
               conditioning: Conditioning | None = None, labels: torch.Tensor | None = None,
-              seed: int = 0) -> torch.Tensor:
+              seed: int = 0, truncation: float = 1.0) -> torch.Tensor:
     """uint8 N x 3 x S x S -> uint8 N x 3 x S x S through ``generator`` (eval mode, no dropout); with a
     ``conditioning`` other than none, ``labels`` (N class indices) says what each image is asked to be.
     A generator with a latent code gets z ~ N(0, I) drawn from a generator seeded with ``seed`` (so the
-    same call gives the same images; another seed, another draw)."""
+    same call gives the same images; another seed, another draw), scaled by ``truncation`` psi: z' = psi z, the
+    truncation trick in a space whose mean code is 0 (Karras et al. 2019; Brock et al. 2019 truncate z itself):
+    psi < 1 trades diversity for typical outputs, 0 gives every input the mean code, 1 is the plain draw."""
     device = next(generator.parameters()).device
     conditioning = conditioning or Conditioning()
     if conditioning.needs_labels and (labels is None or len(labels) != len(images)):
         raise ValueError(f"a model conditioned on '{conditioning.kind}' needs one class per image")
+    if not 0.0 <= truncation <= 1.0:
+        raise ValueError(f"truncation must lie in [0, 1], got {truncation}")
     codes = fixed_codes(generator, len(images), seed)
+    if codes is not None and truncation != 1.0:
+        codes = codes * truncation
     out = []
     for i in range(0, len(images), batch_size):
         x = to_model_range(images[i:i + batch_size]).to(device)
