@@ -19,6 +19,7 @@ from vtgen.core.gan import to_model_range, to_uint8
 from vtgen.core.models import UNetGenerator, fixed_codes
 from vtgen.io.checkpoints import input_preparation, save_generator
 from vtgen.io.images import read_tiles
+from vtgen.io.params import ParamsError, validate_params
 from vtgen.core.roi import Box, cut_tile
 
 SETTINGS = dict(TINY_MODEL, gan_loss="bce", l1_weight=100.0, optimizer="adam", lr=0.0002, betas=[0.5, 0.999],
@@ -75,6 +76,38 @@ def test_truncation_scales_the_latent_codes_towards_the_mean_code():
     for psi in (-0.1, 1.5):
         with pytest.raises(ValueError, match="truncation must lie in"):
             translate(generator, images, truncation=psi)
+
+
+def test_generate_truncation_is_set_per_direction_and_recorded(tmp_path, monkeypatch):
+    """generate.truncation {v2t: psi, t2v: psi}: the written images are translate's at the direction's psi, the
+    summary records a psi other than 1 and adds no key at 1; a psi outside [0, 1] is refused by the schema."""
+    monkeypatch.chdir(tmp_path)
+    pairs, splits = pair_tables(tmp_path)
+    (tmp_path / "pairs").mkdir()
+    pairs.to_parquet("pairs/v2t.parquet")
+    splits.to_parquet("pairs/splits.parquet")
+    torch.manual_seed(0)
+    folder = tmp_path / "models/v2t/all"
+    folder.mkdir(parents=True)
+    save_generator(folder / "generator.pt", UNetGenerator(32, 8, 4, latent=4), dict(SETTINGS, latent=4), "v2t", "all")
+    written = {}
+    for psi in (1.0, 0.0):
+        params = tiny_params()
+        params["generate"]["truncation"] = {"v2t": psi, "t2v": 1.0}
+        summary = run_generate(params, "v2t", "pairs", folder.parent, f"generated{psi}", progress=False)
+        assert summary["scopes"]["all"].get("truncation") == (None if psi == 1.0 else psi)
+        table = pd.read_parquet(f"generated{psi}/generated.parquet")
+        written[psi] = np.stack([np.asarray(Image.open(path)) for path in table["output_path"]])
+    generator, meta = load_translator(folder)
+    first = pd.read_parquet("generated0.0/generated.parquet").iloc[:8]  # the first batch (tiny_params' batch_size 8): seed 0
+    expected = translate(generator, read_tiles(list(first["input_path"]), 32), seed=0, truncation=0.0)
+    actual = np.stack([np.asarray(Image.open(path)) for path in first["output_path"]])
+    assert np.array_equal(actual, expected.permute(0, 2, 3, 1).numpy())
+    assert not np.array_equal(written[0.0], written[1.0])
+    params = tiny_params()
+    params["generate"]["truncation"] = 1.5
+    with pytest.raises(ParamsError, match="generate.truncation"):
+        validate_params(params)
 
 
 def test_run_generate_writes_images_and_a_linked_table(tmp_path, model_dir, monkeypatch):

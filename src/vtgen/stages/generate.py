@@ -83,16 +83,17 @@ def comparison_sheet(rows: pd.DataFrame, image_root: Path, per_class: int = 4,
 
 
 def other_codes(generator: torch.nn.Module, meta: dict, rows: pd.DataFrame, per_class: int = 4,
-                codes: int = 2) -> dict[str, list[np.ndarray]]:
+                codes: int = 2, truncation: float = 1.0) -> dict[str, list[np.ndarray]]:
     """For the first ``per_class`` rows of each class (the preview's inputs), ``codes`` more translations
-    under other latent codes (``translate`` seeds 10**6, 10**6 + 1, ...; the written images use their batch start)."""
+    under other latent codes (``translate`` seeds 10**6, 10**6 + 1, ...; the written images use their batch start),
+    scaled by the same ``truncation`` as the written images."""
     shown = rows.groupby("class", sort=True).head(per_class)
     if shown.empty:
         return {}
     inputs = read_tiles(list(shown["input_path"]), meta["size"])
     labels = meta["conditioning"].labels(list(shown["class"]))
-    outputs = [translate(generator, inputs, conditioning=meta["conditioning"], labels=labels, seed=10**6 + d)
-               for d in range(codes)]
+    outputs = [translate(generator, inputs, conditioning=meta["conditioning"], labels=labels, seed=10**6 + d,
+                         truncation=truncation) for d in range(codes)]
     return {name: [o[i].permute(1, 2, 0).numpy() for o in outputs] for i, name in enumerate(shown["output_name"])}
 
 
@@ -120,6 +121,7 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
     ``summary.json`` into ``out_dir`` atomically.
     """
     cfg = params["generate"]
+    truncation = cfg["truncation"][direction] if isinstance(cfg["truncation"], dict) else cfg["truncation"]
     pairs_dir, models_dir, out_dir = Path(pairs_dir), Path(models_dir), Path(out_dir)
     pairs = read_table(pairs_dir / f"{direction}.parquet", PAIR_COLUMNS, f"a {direction} pair table")
     splits = read_table(pairs_dir / "splits.parquet", SPLIT_COLUMNS, "the split table of the pairs stage")
@@ -141,18 +143,21 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
                 chunk = rows.iloc[start:start + cfg["batch_size"]]
                 outputs = translate(generator, read_tiles(list(chunk["input_path"]), meta["size"]),
                                     conditioning=meta["conditioning"],
-                                    labels=meta["conditioning"].labels(list(chunk["class"])), seed=start)
+                                    labels=meta["conditioning"].labels(list(chunk["class"])), seed=start,
+                                    truncation=truncation)
                 for name, image in zip(chunk["output_name"], outputs):
                     (tmp / name).parent.mkdir(parents=True, exist_ok=True)
                     write_png(tmp / name, image.permute(1, 2, 0).numpy())
             if generator.latent:
-                draws.update(other_codes(generator, meta, rows[rows["split"] == "test"]))
+                draws.update(other_codes(generator, meta, rows[rows["split"] == "test"], truncation=truncation))
             rows["output_path"] = [str(out_dir / n) for n in rows["output_name"]]
             rows["direction"], rows["scope"], rows["model"] = direction, scope, str(models_dir / scope / "generator.pt")
             tables.append(rows)
             summary["scopes"][scope] = {s: int((rows["split"] == s).sum()) for s in ("train", "test")}
             summary["scopes"][scope]["conditioning"] = meta["conditioning"].kind
             summary["scopes"][scope]["with_ground_truth"] = int((rows["ground_truth_path"] != "").sum())
+            if generator.latent and truncation != 1.0:  # the plain draw adds no key: the default's summary stays as it was
+                summary["scopes"][scope]["truncation"] = truncation
         table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame(columns=GENERATED_COLUMNS)
         table[GENERATED_COLUMNS].to_parquet(tmp / "generated.parquet", index=False)
         if tables:
