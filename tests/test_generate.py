@@ -80,7 +80,8 @@ def test_truncation_scales_the_latent_codes_towards_the_mean_code():
 
 def test_generate_truncation_is_set_per_direction_and_recorded(tmp_path, monkeypatch):
     """generate.truncation {v2t: psi, t2v: psi}: the written images are translate's at the direction's psi, the
-    summary records a psi other than 1 and adds no key at 1; a psi outside [0, 1] is refused by the schema."""
+    summary records a psi other than 1 and adds no key at 1, the preview drops its other draws at psi 0; a psi
+    outside [0, 1] is refused by the schema."""
     monkeypatch.chdir(tmp_path)
     pairs, splits = pair_tables(tmp_path)
     (tmp_path / "pairs").mkdir()
@@ -104,6 +105,8 @@ def test_generate_truncation_is_set_per_direction_and_recorded(tmp_path, monkeyp
     actual = np.stack([np.asarray(Image.open(path)) for path in first["output_path"]])
     assert np.array_equal(actual, expected.permute(0, 2, 3, 1).numpy())
     assert not np.array_equal(written[0.0], written[1.0])
+    previews = {psi: np.asarray(Image.open(f"generated{psi}/preview.png")).shape[1] for psi in written}
+    assert previews[1.0] - previews[0.0] == 2 * 4 * 96  # psi 0: no columns of other draws (they would be the same image)
     params = tiny_params()
     params["generate"]["truncation"] = 1.5
     with pytest.raises(ParamsError, match="generate.truncation"):

@@ -148,7 +148,7 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
                 for name, image in zip(chunk["output_name"], outputs):
                     (tmp / name).parent.mkdir(parents=True, exist_ok=True)
                     write_png(tmp / name, image.permute(1, 2, 0).numpy())
-            if generator.latent:
+            if generator.latent and truncation > 0:  # at psi 0 every draw is the mean code's: nothing more to show
                 draws.update(other_codes(generator, meta, rows[rows["split"] == "test"], truncation=truncation))
             rows["output_path"] = [str(out_dir / n) for n in rows["output_name"]]
             rows["direction"], rows["scope"], rows["model"] = direction, scope, str(models_dir / scope / "generator.pt")
