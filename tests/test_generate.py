@@ -57,6 +57,15 @@ def test_translate_is_deterministic_and_keeps_shape(model_dir):
     assert torch.equal(first, second)  # eval mode: no dropout, batch size does not matter
 
 
+def write_pairs_folder(tmp_path, monkeypatch) -> None:
+    """Work in ``tmp_path`` with a ``pairs/`` folder of the small v2t pair and split tables."""
+    monkeypatch.chdir(tmp_path)
+    pairs, splits = pair_tables(tmp_path)
+    (tmp_path / "pairs").mkdir()
+    pairs.to_parquet("pairs/v2t.parquet")
+    splits.to_parquet("pairs/splits.parquet")
+
+
 def test_truncation_scales_the_latent_codes_towards_the_mean_code():
     """psi 1 is the plain draw bit for bit; psi scales every code (psi 0: the mean code, so the seed no longer
     matters); psi outside [0, 1] is refused."""
@@ -82,11 +91,7 @@ def test_generate_truncation_is_set_per_direction_and_recorded(tmp_path, monkeyp
     """generate.truncation {v2t: psi, t2v: psi}: the written images are translate's at the direction's psi, the
     summary records a psi other than 1 and adds no key at 1, the preview drops its other draws at psi 0; a psi
     outside [0, 1] is refused by the schema."""
-    monkeypatch.chdir(tmp_path)
-    pairs, splits = pair_tables(tmp_path)
-    (tmp_path / "pairs").mkdir()
-    pairs.to_parquet("pairs/v2t.parquet")
-    splits.to_parquet("pairs/splits.parquet")
+    write_pairs_folder(tmp_path, monkeypatch)
     torch.manual_seed(0)
     folder = tmp_path / "models/v2t/all"
     folder.mkdir(parents=True)
@@ -136,11 +141,7 @@ def test_run_generate_writes_images_and_a_linked_table(tmp_path, model_dir, monk
 def test_the_preview_shows_other_latent_codes_of_each_input(tmp_path, monkeypatch):
     """A generator with a latent code gets two more columns of outputs per input in the preview (other codes
     of the same inputs); without one the preview keeps its three groups."""
-    monkeypatch.chdir(tmp_path)
-    pairs, splits = pair_tables(tmp_path)
-    (tmp_path / "pairs").mkdir()
-    pairs.to_parquet("pairs/v2t.parquet")
-    splits.to_parquet("pairs/splits.parquet")
+    write_pairs_folder(tmp_path, monkeypatch)
     torch.manual_seed(0)
     widths = {}
     for latent in (0, 4):
@@ -389,11 +390,7 @@ def test_translate_as_tiles_skips_the_roi_rule(tmp_path):
 def test_run_train_records_the_preparation_of_its_training_data(tmp_path, monkeypatch):
     from vtgen.stages.train import run_train
 
-    monkeypatch.chdir(tmp_path)
-    pairs, splits = pair_tables(tmp_path)
-    (tmp_path / "pairs").mkdir()
-    pairs.to_parquet("pairs/v2t.parquet")
-    splits.to_parquet("pairs/splits.parquet")
+    write_pairs_folder(tmp_path, monkeypatch)
     params = tiny_params()
     run_train(params, "v2t", "all", "pairs", "models/v2t/all", "ckpt", progress=False)
     _, meta = load_translator("models/v2t/all")
