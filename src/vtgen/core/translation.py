@@ -27,8 +27,8 @@ def translate(generator: torch.nn.Module, images: torch.Tensor, batch_size: int 
     if not 0.0 <= truncation <= 1.0:
         raise ValueError(f"truncation must lie in [0, 1], got {truncation}")
     codes = fixed_codes(generator, len(images), seed)
-    if codes is not None and truncation != 1.0:
-        codes = codes * truncation
+    if codes is not None:
+        codes = codes * truncation  # exact at psi 1: the plain draw
     out = []
     for i in range(0, len(images), batch_size):
         x = to_model_range(images[i:i + batch_size]).to(device)
