@@ -53,8 +53,8 @@ from vtgen.io.images import labelled_sheet, read_tiles, write_png
 from vtgen.io.params import model_settings, validate_params
 from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
 from vtgen.stages.generate import translate
-from vtgen.stages.train import (build_conditioning, build_guide, load_pair_data, objective_settings,
-                                resolve_objective, train_translator)
+from vtgen.stages.train import (build_conditioning, build_guide, build_referee, load_pair_data, objective_settings,
+                                pairs_in, resolve_objective, train_translator)
 from translation_quality import parse_variant  # the same name:key=value;... variants (benchmarks/ is on sys.path)
 
 def real_classifier(splits, modality: str, params: dict, root: Path, classes: list[str]):
@@ -100,14 +100,17 @@ def run_variant(params, pairs, splits, direction, overrides, seed, iterations, t
             settings[key] = value
     size = settings["size"]
     train = load_pair_data(pairs, splits, direction, "all", size, root)
+    validation = (load_pair_data(pairs, splits, direction, "all", size, root, split="val")
+                  if not pairs_in(pairs, "val", "all").empty else None)
     objective, _ = resolve_objective(run["objective"], train)
     settings = objective_settings(settings, run, objective, direction)
     conditioning = build_conditioning(run["conditioning"][direction], pairs, "all", train, params["classify"], seed,
                                       run.get("inferred_epochs"))
     started = time.perf_counter()
     guide = build_guide(settings, train, params["classify"], seed)
+    referee = build_referee(settings, train, validation, params["classify"], seed)  # class_gan.select_every's judge
     result = train_translator(train, settings, run, direction, "all", progress=False, conditioning=conditioning,
-                              guide=guide)
+                              guide=guide, validation=validation if referee is not None else None, referee=referee)
     seconds = time.perf_counter() - started
     inputs, input_classes = context["test_inputs"], context["test_input_classes"]
     labels = conditioning.labels(list(input_classes)) if conditioning.needs_labels else None
