@@ -60,7 +60,7 @@ def _pairs(args, params) -> None:
 def _train(args, params) -> None:
     from vtgen.stages.train import run_train
 
-    run_train(params, args.direction, args.scope, args.pairs, args.out, args.checkpoints)
+    run_train(params, args.direction, args.scope, args.pairs, args.out, args.checkpoints, tiles_path=args.tiles)
 
 
 def _generate(args, params) -> None:
@@ -171,6 +171,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--direction", required=True, choices=list(DIRECTIONS))
     train.add_argument("--scope", required=True, help="'all' or a class name listed in translation.scope")
     train.add_argument("--pairs", required=True, help="folder written by the pairs stage")
+    train.add_argument("--tiles", default="data/roi/tiles.parquet",
+                       help="tiles.parquet of the roi stage, whose frames class_gan.views crops again "
+                            "(default: data/roi/tiles.parquet)")
     train.add_argument("--checkpoints", default="checkpoints",
                        help="root of the resumable checkpoints (default: checkpoints)")
     generate = stage("generate", _generate, "translate the test split (and a share of training inputs)")

@@ -80,7 +80,7 @@ STAGES: tuple[Stage, ...] = (
           doc="Assign train/val/test by source and write the V2T and T2V pair tables."),
     Stage("train", "vtgen.stages.train",
           "vtgen train --params params.yaml --direction {direction} --scope {scope} --pairs data/pairs "
-          "--out models/{direction}/{scope}",
+          "--tiles data/roi/tiles.parquet --out models/{direction}/{scope}",
           inputs=("data/pairs", "data/roi"), outputs=("models/{direction}/{scope}",),
           params=("translation", "presets.${translation.preset}", "roi"), threads="translation.threads",
           doc="Train the conditional GAN of one direction for one scope entry ('all' or a class)."),

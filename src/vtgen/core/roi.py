@@ -763,12 +763,14 @@ def tiles_without_markers_near(image: np.ndarray, boxes: list[Box], size: int, r
     return tiles
 
 
-def image_roi(image: np.ndarray, modality: str, roi: Mapping) -> ImageROI:
-    """The ROI rule for one image, with the region it chose (see :func:`image_tiles`)."""
+def _region_and_cut(image: np.ndarray, modality: str, roi: Mapping) -> tuple[Region, np.ndarray, str]:
+    """The region the ROI rule cuts ``image`` in, the image to cut from (cleaned of markers for a GelSight
+    rectangle) and how to cut: "plain", "window" (markers painted out around the crops) or "frame"
+    (the whole frame's marker mask)."""
     _check_image(image)
     height, width = image.shape[:2]
     clean = modality == "tactile" and roi["remove_markers"]
-    cut = "plain"  # or "window": markers painted out around the crops; "frame": markers of the whole frame
+    cut = "plain"
     if modality != "tactile":
         region = Region("frame", Box(0, 0, width, height))
     elif roi["tactile_box"] == "auto":
@@ -787,18 +789,43 @@ def image_roi(image: np.ndarray, modality: str, roi: Mapping) -> ImageROI:
     else:
         region = tactile_region_of(image, roi["tactile_box"])
         cut = "frame" if clean else "plain"
+    return region, image, cut
+
+
+def _cut_boxes(image: np.ndarray, boxes: list[Box], size: int, cut: str) -> list[np.ndarray]:
+    """The (size, size, 3) uint8 tiles of ``boxes`` cut from ``image`` the way ``cut`` says (:func:`_region_and_cut`)."""
+    if cut == "window":
+        return tiles_without_markers_near(image, boxes, size)
+    if cut == "frame":  # inpaints only around the boxes, at the tiles' resolution: same tiles as cleaning the frame, nearly
+        rgb = image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
+        return cut_tiles_without_markers(rgb, boxes, size)
+    return [_cut_grey_or_rgb(image, box, size) for box in boxes]
+
+
+def image_roi(image: np.ndarray, modality: str, roi: Mapping) -> ImageROI:
+    """The ROI rule for one image, with the region it chose (see :func:`image_tiles`)."""
+    region, image, cut = _region_and_cut(image, modality, roi)
     if reason := too_small(region.box, roi):
         return ImageROI(None, [], [], reason)
     boxes = crop_boxes(region.box, roi["visual_crop"], roi["crop_fraction"])
-    size = roi["size"]
-    if cut == "window":
-        tiles = tiles_without_markers_near(image, boxes, size)
-    elif cut == "frame":  # inpaints only around the boxes, at the tiles' resolution: same tiles as cleaning the frame, nearly
-        rgb = image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
-        tiles = cut_tiles_without_markers(rgb, boxes, size)
-    else:
-        tiles = [_cut_grey_or_rgb(image, box, size) for box in boxes]
-    return ImageROI(region, boxes, tiles)
+    return ImageROI(region, boxes, _cut_boxes(image, boxes, roi["size"], cut))
+
+
+def random_crops(image: np.ndarray, modality: str, roi: Mapping, count: int,
+                 rng: np.random.Generator) -> tuple[list[Box], list[np.ndarray]]:
+    """``count`` more views of one image for training: squares of the ROI rule's crop side
+    (``floor(crop_fraction * min(w, h))`` of the region :func:`image_roi` chooses) at uniformly random places
+    inside that region, cut and cleaned exactly as its tiles are. Returns the boxes (frame coordinates) and
+    the (size, size, 3) uint8 tiles; both empty when the region is too small for a crop."""
+    region, image, cut = _region_and_cut(image, modality, roi)
+    if too_small(region.box, roi) or count <= 0:
+        return [], []
+    box = region.box
+    side = max(1, int(roi["crop_fraction"] * min(box.w, box.h)))
+    xs = rng.integers(0, box.w - side + 1, size=count)
+    ys = rng.integers(0, box.h - side + 1, size=count)
+    boxes = [Box(box.x + int(x), box.y + int(y), side, side) for x, y in zip(xs, ys)]
+    return boxes, _cut_boxes(image, boxes, roi["size"], cut)
 
 
 def image_tiles(image: np.ndarray, modality: str, roi: Mapping) -> tuple[list[Box], list[np.ndarray], str]:

@@ -41,7 +41,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from vtgen.io.images import atomic_output_dir, ImageError, labelled_sheet, read_rgb8, stream_map, write_png
+from vtgen.io.images import atomic_output_dir, ImageError, labelled_sheet, read_for_roi, read_rgb8, stream_map, write_png  # noqa: F401 - read_for_roi re-exported
 from vtgen.io.tables import read_table
 from vtgen.core.roi import crop_boxes, image_roi, ImageROI, tactile_region  # noqa: F401 - crop_boxes, tactile_region: re-exported
 from vtgen.io.tables import TILE_COLUMNS
@@ -57,27 +57,6 @@ _BOX_COLUMNS = ["tile_index", "box_x", "box_y", "box_w", "box_h"]
 
 REGION_COLUMNS = ["image_path", "modality", "class", "shape", "region_x", "region_y", "region_w", "region_h",
                   "disc_found", "disc_cx", "disc_cy", "disc_radius", "disc_support", "disc_overlap", "note", "channels"]
-_JPEG = frozenset({".jpg", ".jpeg"})
-
-
-def read_for_roi(path: str | Path) -> np.ndarray:
-    """The image at ``path`` as (H, W) grey or (H, W, 3) RGB uint8: the pixels of ``read_rgb8`` (grey
-    replicated to RGB there). Baseline 8-bit grey and colour JPEGs are decoded by OpenCV (3-4 times
-    faster than Pillow plus the RGB copy on 640x480 grey frames); anything else, or a file OpenCV
-    decodes to another shape or type, goes through ``read_rgb8`` and its errors."""
-    if Path(path).suffix.lower() in _JPEG:
-        try:
-            data = np.fromfile(path, np.uint8)
-        except OSError:
-            data = None
-        if data is not None and data[:3].tobytes() == b"\xff\xd8\xff":
-            decoded = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-            if decoded is not None and decoded.dtype == np.uint8:
-                if decoded.ndim == 2:
-                    return decoded
-                if decoded.ndim == 3 and decoded.shape[2] == 3:
-                    return cv2.cvtColor(decoded, cv2.COLOR_BGR2RGB)
-    return read_rgb8(path).rgb
 
 
 def write_tile_png(path: Path, rgb: np.ndarray) -> None:

@@ -24,8 +24,10 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import statistics
 import time
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -43,9 +45,10 @@ from vtgen.core.gan import random_positioning, to_model_range, to_uint8
 from vtgen.core.metrics import colour_ssim
 from vtgen.core.models import count_parameters, fixed_codes
 from vtgen.core.referee import at_side, distinct_images, Referee, train_referee
+from vtgen.core.roi import random_crops
 from vtgen.core.translator import LOSS_NAMES, STATE_KEYS, training_step_flops, TranslatorTraining
 from vtgen.io.checkpoints import input_preparation, save_atomic, save_generator
-from vtgen.io.images import atomic_output_dir, read_tiles
+from vtgen.io.images import atomic_output_dir, read_for_roi, read_tiles, resize_tiles
 from vtgen.io.limits import check_training_fits
 from vtgen.io.params import model_settings
 from vtgen.io.provenance import code_fingerprint
@@ -123,9 +126,7 @@ def load_pair_data(pairs: pd.DataFrame, splits: pd.DataFrame, direction: str, sc
     train = pairs_in(pairs, split, scope)
     if train.empty:
         raise ValueError(f"{direction}/{scope}: no {split} pairs")
-    source_mod = DIRECTIONS[direction][0]
-    pool = splits[(splits["split"] == split) & (splits["modality"] == source_mod)
-                  & splits["class"].isin(set(train["class"]))].sort_values("path")
+    pool = input_pool_rows(train, splits, direction, split)
     pool_classes = pool["class"].to_numpy()
     return PairData(
         inputs=read_tiles(list(train["input_path"]), size, root),
@@ -136,6 +137,77 @@ def load_pair_data(pairs: pd.DataFrame, splits: pd.DataFrame, direction: str, sc
         pool_images=read_tiles(list(pool["path"]), size, root),
         input_pool={c: torch.from_numpy(np.flatnonzero(pool_classes == c)) for c in sorted(set(train["class"]))},
     )
+
+
+def input_pool_rows(rows: pd.DataFrame, splits: pd.DataFrame, direction: str, split: str) -> pd.DataFrame:
+    """The split table's tiles of ``split`` in ``direction``'s input modality and the classes of ``rows``,
+    sorted by path: the inputs a class pair draws from."""
+    source_mod = DIRECTIONS[direction][0]
+    return splits[(splits["split"] == split) & (splits["modality"] == source_mod)
+                  & splits["class"].isin(set(rows["class"]))].sort_values("path")
+
+
+def frame_views(tile_paths: list[str], tiles: pd.DataFrame, tiles_dir: Path, roi: dict, count: int, size: int,
+                seed: int, root: Path = Path(".")) -> torch.Tensor:
+    """``count`` random crops of the frame behind each tile (:func:`vtgen.core.roi.random_crops`: the ROI
+    rule's side and cleaning, at random places in the frame's region), as a uint8
+    ``len(tile_paths) * count`` x 3 x ``size`` x ``size`` tensor, tile by tile. Each tile's crops come from a
+    generator seeded by ``seed`` and the tile's path, whatever other tiles are asked for. ``tiles`` is the
+    roi stage's table; its ``tile_path`` is relative to ``tiles_dir``, and a relative frame path to ``root``. ValueError naming the tile or frame
+    when a tile is not in the table or its frame cannot be read or cut."""
+    def where(path) -> str:  # one spelling for a path given relative to root or absolute
+        return os.path.abspath(os.path.join(root, path))
+
+    by_path = {where(Path(tiles_dir) / rel): (image, modality) for rel, image, modality
+               in zip(tiles["tile_path"], tiles["image_path"], tiles["modality"])}
+    crops = []
+    for path in tile_paths:
+        key = where(path)
+        if key not in by_path:
+            raise ValueError(f"{path}: tile not in the roi stage's table under {tiles_dir}; rerun the roi and pairs stages")
+        image_path, modality = by_path[key]
+        rng = np.random.default_rng([seed, zlib.crc32(Path(path).as_posix().encode())])
+        try:
+            _, views = random_crops(read_for_roi(Path(root) / image_path), modality, roi, count, rng)
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{image_path}: {exc} (the frame of {path}; has it changed since the roi stage?)") from exc
+        if len(views) != count:
+            raise ValueError(f"{image_path}: its region is too small for roi.crop_fraction {roi['crop_fraction']}")
+        crops.extend(views)
+    if not crops:
+        return torch.zeros((0, 3, size, size), dtype=torch.uint8)
+    return resize_tiles(torch.from_numpy(np.stack(crops)).permute(0, 3, 1, 2).contiguous(), size)
+
+
+def with_frame_views(data: PairData, pairs: pd.DataFrame, splits: pd.DataFrame, direction: str, scope: str,
+                     views: int, tiles_path: Path, roi: dict, size: int, seed: int, root: Path = Path(".")) -> PairData:
+    """``data`` (the training pairs of :func:`load_pair_data`) with ``views - 1`` more crops of every frame
+    (:func:`frame_views`) behind its class pairs' targets and behind its input pool: each crop of a target
+    is one more class pair of that class, each crop of an input one more input of its class. Pixel and
+    name pairs are kept as they are and get no crops (a crop elsewhere in the frame is not their partner).
+    ``views`` 1 returns ``data`` itself."""
+    if views <= 1:
+        return data
+    tiles = read_table(Path(root) / tiles_path, ["tile_path", "image_path", "modality"], "the roi stage's tile table")
+    tiles_dir, extra = Path(tiles_path).parent / "tiles", views - 1
+    train = pairs_in(pairs, "train", scope)
+    pool = input_pool_rows(train, splits, direction, "train")
+    free = np.flatnonzero(~data.fixed.numpy())
+    rows = np.repeat(free, extra)
+    targets = frame_views(list(train["target_path"].iloc[free]), tiles, tiles_dir, roi, extra, size, seed, root)
+    inputs = frame_views(list(pool["path"]), tiles, tiles_dir, roi, extra, size, seed, root)
+    view_classes = np.repeat(pool["class"].to_numpy(), extra)
+    first = len(data.pool_images)
+    input_pool = {c: torch.cat([index, torch.from_numpy(first + np.flatnonzero(view_classes == c))])
+                  for c, index in data.input_pool.items()}
+    no = torch.zeros(len(rows), dtype=torch.bool)
+    return PairData(inputs=torch.cat([data.inputs, data.inputs[torch.from_numpy(rows)]]),
+                    targets=torch.cat([data.targets, targets]),
+                    classes=data.classes + [data.classes[i] for i in rows],
+                    aligned=torch.cat([data.aligned, no]),
+                    pool_images=torch.cat([data.pool_images, inputs]),
+                    input_pool=input_pool,
+                    fixed=torch.cat([data.fixed, no]))
 
 
 def draw_batch(data: PairData, batch_size: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -213,7 +285,7 @@ def objective_settings(settings: dict, translation: dict, objective: str, direct
     """The preset block with the class_gan keys of ``translation.class_gan`` added when that objective
     trains (the pix2pix settings stay exactly the preset's); a key given per direction ({v2t: w, t2v: w}, as
     ``nce`` is) takes ``direction``'s value. ``class_gan.iterations`` replaces the preset's iterations where
-    it is not null; ``class_gan.lr_decay`` 0, ``latent_map`` false and ``select_every`` 0 add no key."""
+    it is not null; ``class_gan.lr_decay`` 0, ``latent_map`` false, ``select_every`` 0 and ``views`` 1 add no key."""
     if objective != "class_gan":
         return settings
     if settings["batch_size"] < 2 or settings["batch_size"] % 2:
@@ -234,6 +306,8 @@ def objective_settings(settings: dict, translation: dict, objective: str, direct
     for switch in ("lr_decay", "latent_map", "select_every"):
         if not terms.get(switch):
             terms.pop(switch, None)  # off adds no key: the settings, and the checkpoints hashed from them, stay as they were
+    if terms.get("views") == 1:
+        terms.pop("views")  # the centre tile alone: the same
     return dict(settings, objective="class_gan", **terms)
 
 
@@ -933,10 +1007,12 @@ def _summary(result: TrainResult, data: PairData, validation: PairData | None, s
 
 
 def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, out_dir: str | Path,
-              checkpoint_root: str | Path = "checkpoints", progress: bool = True) -> dict:
+              checkpoint_root: str | Path = "checkpoints", progress: bool = True,
+              tiles_path: str | Path = "data/roi/tiles.parquet") -> dict:
     """Stage entry: train ``direction`` for one ``scope`` entry and write ``out_dir`` atomically.
 
-    ``out_dir`` receives generator.pt, train.json and dvclive/ (per-step losses). Checkpoints
+    ``out_dir`` receives generator.pt, train.json and dvclive/ (per-step losses). ``tiles_path`` (the roi
+    stage's table) is read only when ``class_gan.views`` asks for more crops of the training frames. Checkpoints
     live outside it, in ``checkpoint_root/<direction>/<scope>/``, because Snakemake and DVC
     delete a stage's outputs before rerunning it and a resume must survive that.
     """
@@ -959,6 +1035,14 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
                                    resolve_device(run["device"]).type)
     objective, objective_reason = resolve_objective(run["objective"], data)
     settings = objective_settings(settings, run, objective, direction)
+    frames = len(data.targets)
+    if settings.get("views", 1) > 1:
+        started = time.perf_counter()
+        data = with_frame_views(data, pairs, splits, direction, scope, settings["views"], Path(tiles_path),
+                                params["roi"], settings["size"], run["seed"])
+        print(f"train {direction}/{scope}: class_gan.views {settings['views']}: {len(data.targets) - frames} more "
+              f"target crops and {len(data.pool_images)} inputs in all, cut from the training frames in "
+              f"{time.perf_counter() - started:.1f} s")
     guide = build_guide(settings, data, params["classify"], run["seed"])
     referee = build_referee(settings, data, validation, params["classify"], run["seed"])
     print(f"train {direction}/{scope}: {len(data.targets)} training pairs ({int(data.aligned.sum())} aligned), "
@@ -983,6 +1067,8 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
         summary = _summary(result, data, validation, settings, run, direction, scope, conditioning)
         summary["capacity"] = capacity
         summary["objective"] = {"name": objective, "reason": objective_reason}
+        summary["views"] = {"per_frame": int(settings.get("views", 1)), "target_frames": frames,
+                            "targets": len(data.targets), "inputs": len(data.pool_images)}
         if objective == "class_gan":
             summary["selection"] = selection_record(settings, result, validation)
         (tmp / "train.json").write_text(json.dumps(summary, indent=2) + "\n")
