@@ -153,8 +153,8 @@ def frame_views(tile_paths: list[str], tiles: pd.DataFrame, tiles_dir: Path, roi
     rule's side and cleaning, at random places in the frame's region), as a uint8
     ``len(tile_paths) * count`` x 3 x ``size`` x ``size`` tensor, tile by tile. Each tile's crops come from a
     generator seeded by ``seed`` and the tile's path, whatever other tiles are asked for. ``tiles`` is the
-    roi stage's table; its ``tile_path`` is relative to ``tiles_dir``, and a relative frame path to ``root``. ValueError naming the tile or frame
-    when a tile is not in the table or its frame cannot be read or cut."""
+    roi stage's table; its ``tile_path`` is relative to ``tiles_dir``, and a relative frame path to ``root``.
+    ValueError naming the tile or frame when a tile is not in the table or its frame cannot be read or cut."""
     def where(path) -> str:  # one spelling for a path given relative to root or absolute
         return os.path.abspath(os.path.join(root, path))
 
