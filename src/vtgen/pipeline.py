@@ -81,7 +81,8 @@ STAGES: tuple[Stage, ...] = (
     Stage("train", "vtgen.stages.train",
           "vtgen train --params params.yaml --direction {direction} --scope {scope} --pairs data/pairs "
           "--tiles data/roi/tiles.parquet --out models/{direction}/{scope}",
-          inputs=("data/pairs", "data/roi"), outputs=("models/{direction}/{scope}",),
+          # data/ingest: the md5s of the frames that class_gan.views crops again
+          inputs=("data/pairs", "data/roi", "data/ingest"), outputs=("models/{direction}/{scope}",),
           params=("translation", "presets.${translation.preset}", "roi"), threads="translation.threads",
           doc="Train the conditional GAN of one direction for one scope entry ('all' or a class)."),
     Stage("generate", "vtgen.stages.generate",

@@ -665,6 +665,11 @@ def tactile_region(frame: np.ndarray, tactile_box) -> Box:
     return tactile_region_of(frame, tactile_box).box
 
 
+def crop_side(region: Box, crop_fraction: float) -> int:
+    """The side of a crop in ``region``: ``floor(crop_fraction * min(w, h))``, at least 1 pixel."""
+    return max(1, int(crop_fraction * min(region.w, region.h)))
+
+
 def crop_boxes(region: Box, visual_crop: str, crop_fraction: float) -> list[Box]:
     """Square crops inside ``region``, in frame coordinates.
 
@@ -675,8 +680,7 @@ def crop_boxes(region: Box, visual_crop: str, crop_fraction: float) -> list[Box]
     if visual_crop == "centre":
         local = [centre_box(region.w, region.h, crop_fraction)]
     elif visual_crop == "tiles":
-        side = max(1, int(crop_fraction * min(region.w, region.h)))
-        local = tile_boxes(region.w, region.h, side)
+        local = tile_boxes(region.w, region.h, crop_side(region, crop_fraction))
     else:
         raise ValueError(f"roi.visual_crop must be 'centre' or 'tiles', got '{visual_crop}'")
     return [Box(region.x + b.x, region.y + b.y, b.w, b.h) for b in local]
@@ -821,7 +825,7 @@ def random_crops(image: np.ndarray, modality: str, roi: Mapping, count: int,
     if too_small(region.box, roi) or count <= 0:
         return [], []
     box = region.box
-    side = max(1, int(roi["crop_fraction"] * min(box.w, box.h)))
+    side = crop_side(box, roi["crop_fraction"])
     xs = rng.integers(0, box.w - side + 1, size=count)
     ys = rng.integers(0, box.h - side + 1, size=count)
     boxes = [Box(box.x + int(x), box.y + int(y), side, side) for x, y in zip(xs, ys)]

@@ -41,7 +41,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from vtgen.io.images import atomic_output_dir, ImageError, labelled_sheet, read_for_roi, read_rgb8, stream_map, write_png  # noqa: F401 - read_for_roi re-exported
+from vtgen.io.images import atomic_output_dir, ImageError, labelled_sheet, read_for_roi, read_rgb8, stream_map, write_png
 from vtgen.io.tables import read_table
 from vtgen.core.roi import crop_boxes, image_roi, ImageROI, tactile_region  # noqa: F401 - crop_boxes, tactile_region: re-exported
 from vtgen.io.tables import TILE_COLUMNS
