@@ -107,7 +107,7 @@ def run_variant(params, pairs, splits, direction, overrides, seed, iterations, t
     train = with_frame_views(train, pairs, splits, direction, "all", settings.get("views", 1),
                              Path("data/roi/tiles.parquet"), params["roi"], size, seed, root)
     conditioning = build_conditioning(run["conditioning"][direction], pairs, "all", train, params["classify"], seed,
-                                      run.get("inferred_epochs"))
+                                      run.get("inferred_epochs"), run.get("inferred_reader", "network"))
     started = time.perf_counter()
     guide = build_guide(settings, train, params["classify"], seed)
     referee = build_referee(settings, train, validation, params["classify"], seed)  # class_gan.select_every's judge

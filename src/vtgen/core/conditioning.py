@@ -1,4 +1,4 @@
-"""What a generator is told besides its input image (pure torch).
+"""What a generator is told besides its input image.
 
 Touch cannot tell colour, and a photo of one fabric does not say how hard its threads press; a
 user usually knows the class, and may have a reference photo. A :class:`Conditioning` turns a batch
@@ -11,7 +11,8 @@ of input images and their class indices into the generator's input, the *conditi
   appearance reference of VisGel (Li et al. 2019) and Gao et al. 2023;
 * ``inferred`` - trained as ``class`` (the training pairs' classes are known), but when translating the
   generator is told the class a classifier of the *input* modality reads from the input itself (its most
-  probable class). It is never told the true class of what it translates; on class-paired data, where the
+  probable class): the classify stage's network, or a reader of hand-crafted features
+  (:mod:`vtgen.core.readers`, ``translation.inferred_reader``). It is never told the true class of what it translates; on class-paired data, where the
   class is all that links a photo to a touch, it is told what its input says, so its output can be no
   more recognisable than its input is (issue 24, goal 3).
 
@@ -27,15 +28,18 @@ import torch
 import torch.nn.functional as F
 
 from vtgen.core.classifier import make_classifier
+from vtgen.core.readers import FeatureReader
 
 CONDITIONINGS = ("none", "class", "reference", "inferred")
+INPUT_READERS = ("network", "features")  # what reads the input's class for ``inferred`` (translation.inferred_reader)
 
 
 @dataclass(frozen=True)
 class Conditioning:
     """``kind`` (one of :data:`CONDITIONINGS`), the class names in index order, for ``reference`` one
     uint8 ``K x 3 x S x S`` reference image per class (same order), and for ``inferred`` the input-modality
-    classifier (:func:`vtgen.core.classifier.make_classifier` with ``classifier_settings``, eval mode)."""
+    classifier, eval mode: :func:`vtgen.core.classifier.make_classifier` with ``classifier_settings``, or, when
+    those settings say ``reader: features``, a :class:`vtgen.core.readers.FeatureReader`."""
 
     kind: str = "none"
     classes: tuple[str, ...] = ()
@@ -130,7 +134,8 @@ class Conditioning:
         saved, model, settings = record.get("classifier"), None, None
         if saved is not None:
             settings = dict(saved["settings"])
-            model = make_classifier(len(record["classes"]), settings, 0)
+            model = (FeatureReader(len(record["classes"])) if settings.get("reader") == "features"
+                     else make_classifier(len(record["classes"]), settings, 0))
             model.load_state_dict(saved["state_dict"])
             model.eval()
         return cls(record["kind"], tuple(record["classes"]), record.get("references"), model, settings)

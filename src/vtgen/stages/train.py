@@ -38,12 +38,13 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from vtgen.core.classifier import train_classifier
-from vtgen.core.conditioning import Conditioning, typical_images
+from vtgen.core.conditioning import Conditioning, INPUT_READERS, typical_images
 from vtgen.core.device import resolve_device, resolve_precision
 from vtgen.core.domain import DIRECTIONS
 from vtgen.core.gan import random_positioning, to_model_range, to_uint8
 from vtgen.core.metrics import colour_ssim
 from vtgen.core.models import count_parameters, fixed_codes
+from vtgen.core.readers import fit_feature_reader
 from vtgen.core.referee import at_side, distinct_images, Referee, train_referee
 from vtgen.core.roi import random_crops
 from vtgen.core.translator import LOSS_NAMES, STATE_KEYS, training_step_flops, TranslatorTraining
@@ -905,25 +906,38 @@ def _finished_probe(folder: Path | None, settings: dict, run: dict, direction: s
 
 
 def build_conditioning(kind: str, pairs: pd.DataFrame, scope: str, data: PairData,
-                       classify: dict | None = None, seed: int = 0, epochs: int | None = None) -> Conditioning:
+                       classify: dict | None = None, seed: int = 0, epochs: int | None = None,
+                       reader: str = "network") -> Conditioning:
     """The ``translation.conditioning`` of one model: its classes are those of the scope's pairs (sorted);
     a ``reference`` is the typical training target of each class (:func:`typical_images`); ``inferred``
+    fits its input reader (``translation.inferred_reader``) on the training inputs of each class: ``network``
     trains the classify stage's classifier (``classify``: width, epochs, batch_size, lr; at the model's
-    side) on the training inputs of each class for ``epochs`` epochs (``translation.inferred_epochs``;
-    None: classify's own), seeded with ``seed``."""
+    side) for ``epochs`` epochs (``translation.inferred_epochs``; None: classify's own), seeded with ``seed``;
+    ``features`` fits :func:`vtgen.core.readers.fit_feature_reader` (no epochs, no seed)."""
     if kind == "none":
         return Conditioning()
     names = tuple(sorted(set(pairs_in(pairs, "train", scope)["class"])))
     references = typical_images(data.targets, data.classes, names) if kind == "reference" else None
     if kind != "inferred":
         return Conditioning(kind, names, references)
-    if classify is None:
+    if reader not in INPUT_READERS:
+        raise ValueError(f"unknown translation.inferred_reader '{reader}' (allowed: {', '.join(INPUT_READERS)})")
+    if classify is None and reader == "network":
         raise ValueError("conditioning 'inferred' needs the classify settings to train its input classifier")
     if len(names) < 2:
         raise ValueError(f"conditioning 'inferred' needs at least 2 classes to tell apart, the pairs have {list(names)}")
     index = torch.cat([data.input_pool[name] for name in names])
     labels = torch.cat([torch.full((len(data.input_pool[name]),), i, dtype=torch.int64) for i, name in enumerate(names)])
     images = data.pool_images[index]
+    if reader == "features":
+        started = time.perf_counter()
+        model = fit_feature_reader(images, labels, len(names))
+        with torch.no_grad():
+            accuracy = float((model(images).argmax(dim=1) == labels).float().mean())
+        print(f"conditioning inferred: hand-crafted-feature reader fitted on {len(images)} training inputs of "
+              f"{len(names)} classes in {time.perf_counter() - started:.1f} s, training accuracy {accuracy:.3f}")
+        return Conditioning(kind, names, classifier=model,
+                            classifier_settings={"reader": "features", "size": int(images.shape[-1])})
     settings = {"size": int(images.shape[-1]), **{k: classify[k] for k in ("width", "epochs", "batch_size", "lr")}}
     if epochs is not None:
         settings["epochs"] = int(epochs)
@@ -1030,7 +1044,7 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
     validation = (load_pair_data(pairs, splits, direction, scope, settings["size"], split="val")
                   if not pairs_in(pairs, "val", scope).empty else None)
     conditioning = build_conditioning(run["conditioning"][direction], pairs, scope, data, params["classify"], run["seed"],
-                                      run["inferred_epochs"])
+                                      run["inferred_epochs"], run["inferred_reader"])
     settings = check_training_fits(settings, len(data.targets), f"presets.{run['preset']}", f"train {direction}/{scope}",
                                    resolve_device(run["device"]).type)
     objective, objective_reason = resolve_objective(run["objective"], data)

@@ -1,0 +1,89 @@
+"""How recognisable can a generator that is *not* told the class be? Issue 24, goal 3, on one run folder.
+
+A generator trained with ``conditioning: class`` (or ``inferred``) is asked to translate every test input while
+told, in turn: the true class; the class the classify stage's network (real-only, trained here on the run's
+training inputs as the score stage's classifiers are) reads from the input; the class a hand-crafted-feature
+reader reads from it (``translation.inferred_reader: features``, :mod:`vtgen.core.readers`, fitted on the training
+inputs); and a random class. Each row gives the
+reader's accuracy on the test inputs and the GAN-test of the translations (the target modality's real-only
+classifier, :func:`unaligned_ablation.prepare_context`), with Wilson 95% intervals, beside goal 3's threshold
+(0.8 x the lower real-only accuracy).
+
+The true-class row is the ceiling of any reader: a generator not told the class is at most that recognisable.
+GAN-test is roughly a*r + (1 - a)(1 - r)/(K - 1) for a reader of accuracy a and a told-class GAN-test r
+(Thirteenth round of benchmarks/README.md).
+
+    python benchmarks/told_class_ceiling.py --run <run folder whose models/v2t/all is conditioned on class>
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from vtgen.core.classifier import predict, wilson_interval
+from vtgen.core.conditioning import Conditioning
+from vtgen.core.domain import DIRECTIONS
+from vtgen.core.readers import fit_feature_reader
+from vtgen.core.translation import translate
+from vtgen.io.checkpoints import load_translator
+from vtgen.io.images import read_tiles
+from vtgen.io.params import validate_params
+from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
+from unaligned_ablation import goal_numbers, prepare_context, real_classifier, resized  # benchmarks/ is on sys.path
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--run", type=Path, default=Path("."), help="a finished run folder")
+    parser.add_argument("--direction", choices=list(DIRECTIONS), default="v2t")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    root = args.run.resolve()
+    torch.set_num_threads(args.threads)
+    params = validate_params(yaml.safe_load((root / "params.yaml").read_text()))
+    pairs = read_table(root / "data" / "pairs" / f"{args.direction}.parquet", PAIR_COLUMNS, "pairs")
+    splits = read_table(root / "data" / "pairs" / "splits.parquet", SPLIT_COLUMNS, "splits")
+    generator, meta = load_translator(root / "models" / args.direction / "all")
+    conditioning = meta["conditioning"]
+    if conditioning.kind not in ("class", "inferred"):
+        parser.error(f"{root}/models/{args.direction}/all is conditioned on '{conditioning.kind}': "
+                     "train it with conditioning class (or inferred) to tell it a class")
+    kind = conditioning.kind
+    conditioning = Conditioning("class", conditioning.classes)  # the same one-hot maps, told whatever class we give
+    context = prepare_context(params, pairs, splits, args.direction, root)
+    classes, source = context["classes"], DIRECTIONS[args.direction][0]
+    index = {c: i for i, c in enumerate(classes)}
+    truth = np.array([index[c] for c in context["test_input_classes"]])
+    (acc, n), (in_acc, in_n) = context["real_accuracy"], context["input_accuracy"]
+    threshold = 0.8 * min(acc, in_acc)
+
+    rows = splits[(splits["split"] == "train") & (splits["modality"] == source)].sort_values("path")
+    train_inputs = read_tiles(list(rows["path"]), context["test_inputs"].shape[-1], root)
+    reader = fit_feature_reader(train_inputs, torch.tensor([index[c] for c in rows["class"]]), len(classes))
+    with torch.no_grad():
+        by_features = reader(context["test_inputs"]).argmax(dim=1).numpy()
+    network, _, _ = real_classifier(splits, source, params, root, classes)
+    by_network = predict(network, resized(context["test_inputs"], params["classify"]["size"])).numpy()
+    randomly = np.random.default_rng(0).integers(0, len(classes), len(truth))
+
+    print(f"# {root} {args.direction} ({kind}); real-only accuracy: target {acc:.3f} (n = {n}), "
+          f"input {in_acc:.3f} (n = {in_n}); goal 3: GAN-test >= {threshold:.3f}\n")
+    print("| told the class read by | reader accuracy [95%] | GAN-test [95%] | n |\n|---|---|---|---|")
+    for name, labels in (("the truth", truth), ("classify's network", by_network),
+                         ("hand-crafted features", by_features), ("a random draw", randomly)):
+        generated = translate(generator, context["test_inputs"], conditioning=conditioning,
+                              labels=torch.as_tensor(labels, dtype=torch.int64))
+        score = goal_numbers(generated, context["test_input_classes"], context)["gan_test"]
+        read = float((labels == truth).mean())
+        (rl, rh), (gl, gh) = wilson_interval(read, len(truth)), wilson_interval(score, len(truth))
+        print(f"| {name} | {read:.3f} [{rl:.3f}, {rh:.3f}] | {score:.3f} [{gl:.3f}, {gh:.3f}] | {len(truth)} |",
+              flush=True)
+
+
+if __name__ == "__main__":
+    main()
