@@ -720,3 +720,20 @@ def test_more_real_data_says_whether_all_real_images_beat_the_low_data_share_bey
         == "0.225 → 0.400: more real data helps"
     assert more_real_data({"low-data real": {"final_mean": 0.225}, "real": {"final_mean": 0.4}}) == "0.225 → 0.400"
     assert more_real_data({"real": {"final_mean": 0.4}}) == "—"
+
+
+def test_gan_test_caveat_says_what_the_generator_was_told():
+    """Told each image's class, the caveat warns that GAN-test rewards following the class; told what a reader of
+    the input read (`inferred`), it names the reader and says the reading bounds the GAN-test; told nothing, none."""
+    from vtgen.stages.report import conditioned_gan_test_note
+
+    summary = {"gan_test": {"final_mean": 0.197}, "settings": {"real": {"final_mean": 0.239}}}
+    told = conditioned_gan_test_note("tactile", summary, [{"direction": "v2t", "conditioning": "class"}])
+    assert "told each image's class (conditioning class)" in told and "0.197" in told and "0.239" in told
+    inferred = conditioned_gan_test_note("tactile", summary, [{"direction": "v2t", "conditioning": "inferred",
+                                                               "input_reader": "features"}])
+    assert "input reader (features)" in inferred and "never the image's own class" in inferred
+    older = conditioned_gan_test_note("tactile", summary, [{"direction": "v2t", "conditioning": "inferred"}])
+    assert "input reader (network)" in older  # train.json from before the reader was recorded
+    assert conditioned_gan_test_note("tactile", summary, [{"direction": "v2t", "conditioning": "none"},
+                                                          {"direction": "t2v", "conditioning": "class"}]) is None

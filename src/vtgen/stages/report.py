@@ -218,14 +218,22 @@ def collect(params: dict, inputs: ReportInputs) -> dict:
 
 
 def conditioned_gan_test_note(modality: str, summary: dict, runs: list[dict]) -> str | None:
-    """A caveat for the GAN-test of ``modality`` when the generator that made its images was told each
-    image's class (train.json ``conditioning`` other than none): such images can be easier to classify
-    than real ones, so the GAN-test is read against the real-only test accuracy; None otherwise."""
-    kinds = sorted({r.get("conditioning", "none") for r in runs
-                    if r.get("direction") == direction_producing(modality) and r.get("status", "ok") == "ok"} - {"none"})
+    """A caveat for the GAN-test of ``modality`` when the generator that made its images was told a class
+    (train.json ``conditioning`` other than none): told each image's class (``class``, ``reference``), its
+    images can be easier to classify than real ones; told what a reader of the input read (``inferred``,
+    train.json ``input_reader``), they can be no more recognisable than that reading. Either way the GAN-test
+    is read against the real-only test accuracy; None when no generator was told a class."""
+    made_by = [r for r in runs if r.get("direction") == direction_producing(modality) and r.get("status", "ok") == "ok"]
+    kinds = sorted({r.get("conditioning", "none") for r in made_by} - {"none"})
     gan, real = summary.get("gan_test") or {}, (summary.get("settings") or {}).get("real") or {}
     if not kinds or gan.get("final_mean") is None or real.get("final_mean") is None:
         return None
+    if kinds == ["inferred"]:
+        readers = sorted({r.get("input_reader", "network") for r in made_by})
+        return (f"the generator of these images was told the class its input reader ({', '.join(readers)}) read from "
+                f"each input, never the image's own class (conditioning inferred), so the GAN-test "
+                f"({gan['final_mean']:.3f}) is bounded by how well the inputs can be read; read it against the "
+                f"real-only test accuracy ({real['final_mean']:.3f})")
     return (f"the generator of these images was told each image's class (conditioning {', '.join(kinds)}), so the "
             f"GAN-test ({gan['final_mean']:.3f}) shows in part that it follows the class it is given; read it against "
             f"the real-only test accuracy ({real['final_mean']:.3f}), not as realism alone")

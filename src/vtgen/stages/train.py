@@ -1005,8 +1005,10 @@ def _summary(result: TrainResult, data: PairData, validation: PairData | None, s
              direction: str, scope: str, conditioning: Conditioning) -> dict:
     """What ``train.json`` records about one training run."""
     final = result.history[-1] if result.history else {}
+    reader = {} if conditioning.kind != "inferred" else {
+        "input_reader": (conditioning.classifier_settings or {}).get("reader", "network")}
     return {
-        "direction": direction, "scope": scope, "preset": run["preset"], "settings": settings,
+        "direction": direction, "scope": scope, "preset": run["preset"], "settings": settings, **reader,
         "conditioning": conditioning.kind, "classes": list(conditioning.classes),
         "precision": result.precision, "precision_setting": run["precision"],
         "precision_reason": result.precision_reason, "device": result.device, "threads": run["threads"], "seed": run["seed"],
