@@ -1,13 +1,13 @@
 """How recognisable can a generator that is *not* told the class be? Issue 24, goal 3, on one run folder.
 
 A generator trained with ``conditioning: class`` (or ``inferred``) is asked to translate every test input while
-told, in turn: the true class; the class the classify stage's network (real-only, trained here on the run's
-training inputs as the score stage's classifiers are) reads from the input; the class a hand-crafted-feature
-reader reads from it (``translation.inferred_reader: features``, :mod:`vtgen.core.readers`, fitted on the training
-inputs); and a random class. Each row gives the
+told, in turn: the true class; for an ``inferred`` model, the class its own stored reader reads; the class the
+classify stage's network (real-only, trained here on the run's training inputs as the score stage's classifiers
+are) reads from the input; the class a hand-crafted-feature reader reads from it (``translation.inferred_reader:
+features``, :mod:`vtgen.core.readers`, fitted on the training inputs); and a random class. Each row gives the
 reader's accuracy on the test inputs and the GAN-test of the translations (the target modality's real-only
 classifier, :func:`unaligned_ablation.prepare_context`), with Wilson 95% intervals, beside goal 3's threshold
-(0.8 x the lower real-only accuracy).
+(0.8 x the lower real-only accuracy). ``--truncation`` scales the latent codes as ``generate.truncation`` does.
 
 The true-class row is the ceiling of any reader: a generator not told the class is at most that recognisable.
 GAN-test is roughly a*r + (1 - a)(1 - r)/(K - 1) for a reader of accuracy a and a told-class GAN-test r
@@ -28,6 +28,7 @@ import yaml
 from vtgen.core.classifier import predict, wilson_interval
 from vtgen.core.conditioning import Conditioning
 from vtgen.core.domain import DIRECTIONS
+from vtgen.core.gan import to_model_range
 from vtgen.core.readers import fit_feature_reader
 from vtgen.core.translation import translate
 from vtgen.io.checkpoints import load_translator
@@ -42,6 +43,7 @@ def main() -> None:
     parser.add_argument("--run", type=Path, default=Path("."), help="a finished run folder")
     parser.add_argument("--direction", choices=list(DIRECTIONS), default="v2t")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--truncation", type=float, default=1.0, help="psi of the latent codes (generate.truncation)")
     args = parser.parse_args()
     root = args.run.resolve()
     torch.set_num_threads(args.threads)
@@ -53,7 +55,7 @@ def main() -> None:
     if conditioning.kind not in ("class", "inferred"):
         parser.error(f"{root}/models/{args.direction}/all is conditioned on '{conditioning.kind}': "
                      "train it with conditioning class (or inferred) to tell it a class")
-    kind = conditioning.kind
+    own, kind = conditioning, conditioning.kind
     conditioning = Conditioning("class", conditioning.classes)  # the same one-hot maps, told whatever class we give
     context = prepare_context(params, pairs, splits, args.direction, root)
     classes, source = context["classes"], DIRECTIONS[args.direction][0]
@@ -70,14 +72,19 @@ def main() -> None:
     network, _, _ = real_classifier(splits, source, params, root, classes)
     by_network = predict(network, resized(context["test_inputs"], params["classify"]["size"])).numpy()
     randomly = np.random.default_rng(0).integers(0, len(classes), len(truth))
+    readings = [("the truth", truth), ("classify's network", by_network), ("hand-crafted features", by_features)]
+    if kind == "inferred":  # the reader stored in the model file, as the generate stage reads
+        reader_name = (own.classifier_settings or {}).get("reader", "network")
+        by_own = own.probabilities(to_model_range(context["test_inputs"])).argmax(dim=1).numpy()
+        readings.append((f"the model's own reader ({reader_name})", by_own))
+    readings.append(("a random draw", randomly))
 
     print(f"# {root} {args.direction} ({kind}); real-only accuracy: target {acc:.3f} (n = {n}), "
           f"input {in_acc:.3f} (n = {in_n}); goal 3: GAN-test >= {threshold:.3f}\n")
     print("| told the class read by | reader accuracy [95%] | GAN-test [95%] | n |\n|---|---|---|---|")
-    for name, labels in (("the truth", truth), ("classify's network", by_network),
-                         ("hand-crafted features", by_features), ("a random draw", randomly)):
+    for name, labels in readings:
         generated = translate(generator, context["test_inputs"], conditioning=conditioning,
-                              labels=torch.as_tensor(labels, dtype=torch.int64))
+                              labels=torch.as_tensor(labels, dtype=torch.int64), truncation=args.truncation)
         score = goal_numbers(generated, context["test_input_classes"], context)["gan_test"]
         read = float((labels == truth).mean())
         (rl, rh), (gl, gh) = wilson_interval(read, len(truth)), wilson_interval(score, len(truth))
