@@ -12,9 +12,9 @@ of input images and their class indices into the generator's input, the *conditi
 * ``inferred`` - trained as ``class`` (the training pairs' classes are known), but when translating the
   generator is told the class a classifier of the *input* modality reads from the input itself (its most
   probable class): the classify stage's network, or a reader of hand-crafted features
-  (:mod:`vtgen.core.readers`, ``translation.inferred_reader``). It is never told the true class of what it translates; on class-paired data, where the
-  class is all that links a photo to a touch, it is told what its input says, so its output can be no
-  more recognisable than its input is (issue 24, goal 3).
+  (:mod:`vtgen.core.readers`, ``translation.inferred_reader``). It is never told the true class of what it
+  translates; on class-paired data, where the class is all that links a photo to a touch, it is told what
+  its input says, so its output can be no more recognisable than its input is (issue 24, goal 3).
 
 The discriminator sees the same condition stacked with the real or generated image
 (:func:`vtgen.core.models.conditional_pair`), so both networks know what was asked for.
