@@ -2,9 +2,8 @@
 features``), for ``conditioning: inferred``.
 
 On object data with one or two physical instances per class, the classify stage's network, trained from scratch
-on a hundred images, reads *new* instances barely above chance, where colour and texture statistics carry over:
-on vt60_subset's test photos 0.533 against 0.250, on its touches 0.33 against 0.19 (benchmarks/README.md,
-Twenty-third round). On the fabric data the network reads the touches better (0.85 at 30 epochs against 0.60).
+on a hundred images, reads *new* instances barely above chance, where colour and texture statistics carry over;
+on the fabric touches the network reads better (measured in benchmarks/README.md, Twenty-third round).
 
 Features (:func:`handcrafted_features`), on each tile resized (anti-aliased) to :data:`FEATURE_SIDE` px:
 
