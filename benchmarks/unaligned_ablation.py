@@ -54,7 +54,7 @@ from vtgen.io.params import model_settings, validate_params
 from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
 from vtgen.stages.generate import translate
 from vtgen.stages.train import (build_conditioning, build_guide, build_referee, load_pair_data, objective_settings,
-                                pairs_in, resolve_objective, train_translator, with_frame_views)
+                                output_settings, pairs_in, resolve_objective, train_translator, with_frame_views)
 from translation_quality import parse_variant  # the same name:key=value;... variants (benchmarks/ is on sys.path)
 
 def real_classifier(splits, modality: str, params: dict, root: Path, classes: list[str]):
@@ -104,6 +104,7 @@ def run_variant(params, pairs, splits, direction, overrides, seed, iterations, t
                   if not pairs_in(pairs, "val", "all").empty else None)
     objective, _ = resolve_objective(run["objective"], train)
     settings = objective_settings(settings, run, objective, direction)
+    settings, _ = output_settings(settings, run, train.targets)
     train = with_frame_views(train, pairs, splits, direction, "all", settings.get("views", 1),
                              Path("data/roi/tiles.parquet"), params["roi"], size, seed, root)
     conditioning = build_conditioning(run["conditioning"][direction], pairs, "all", train, params["classify"], seed,

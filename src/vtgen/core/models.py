@@ -147,6 +147,8 @@ class UNetGenerator(nn.Module):
     :func:`resize_conv` instead of a transposed convolution ('transpose', pix2pix's). ``padding`` 'reflect' pads
     the encoder's convolutions by reflection where their input is larger than 2 px (the bottleneck's keeps zeros),
     so that no level sees a zero frame that tells it where the border is ('zeros', pix2pix's).
+    ``grey_output`` draws one channel and repeats it ``out_channels`` times (:func:`grey_targets`: for targets
+    that are grey, such as a monochrome optical-tactile sensor's, an output can then never carry a colour cast).
     """
 
     def __init__(
@@ -162,6 +164,7 @@ class UNetGenerator(nn.Module):
         upsample: str = "transpose",
         padding: str = "zeros",
         latent_map: bool = False,
+        grey_output: bool = False,
     ) -> None:
         super().__init__()
         if upsample not in UPSAMPLINGS:
@@ -181,6 +184,7 @@ class UNetGenerator(nn.Module):
         self.skips = self.depth - 1 if skips is None else min(skips, self.depth - 1)
         self.in_channels = in_channels
         self.out_channels = out_channels
+        self.grey_output = bool(grey_output)
         self.ngf = ngf
         depth = self.depth
         widths = [encoder_width(level, ngf) for level in range(depth)]
@@ -205,7 +209,7 @@ class UNetGenerator(nn.Module):
         for level in range(depth):
             source = widths[depth - 1] if level == 0 else (2 if level <= self.skips else 1) * widths[depth - 1 - level]
             if level == depth - 1:
-                block = nn.Sequential(up(source, out_channels, bias=True), nn.Tanh())
+                block = nn.Sequential(up(source, 1 if self.grey_output else out_channels, bias=True), nn.Tanh())
             else:
                 target = widths[depth - 2 - level]
                 layers: list[nn.Module] = [
@@ -230,7 +234,7 @@ class UNetGenerator(nn.Module):
         for level in range(1, self.depth):
             joined = torch.cat([x, skips[self.depth - 1 - level]], dim=1) if level <= self.skips else x
             x = self.decoder[level](joined)
-        return x
+        return x.repeat(1, self.out_channels, 1, 1) if self.grey_output else x
 
     def encode(self, x: torch.Tensor, levels: tuple[int, ...]) -> list[torch.Tensor]:
         """The encoder's outputs at ``levels`` (0-based, ascending) for ``x`` (N x in_channels x S x S) with a zero
@@ -341,14 +345,14 @@ class ResnetGenerator(nn.Module):
     checkerboard, Odena et al. 2016) and a 7x7 conv with tanh; :func:`group_norm` and ReLU between, every
     convolution reflection-padded. No path reaches a 1x1 bottleneck, so no level draws one image-wide layout (the
     U-Net's dark-framed blobs on class pairs) and the borders are not zero-padded. ``latent`` and ``latent_map``
-    are the U-Net's (:func:`with_latent_code`).
+    are the U-Net's (:func:`with_latent_code`), and so is ``grey_output``.
     """
 
     def __init__(self, size: int, ngf: int = 32, in_channels: int = 3, out_channels: int = 3, latent: int = 0,
-                 blocks: int = RESNET_BLOCKS, latent_map: bool = False) -> None:
+                 blocks: int = RESNET_BLOCKS, latent_map: bool = False, grey_output: bool = False) -> None:
         super().__init__()
         self.size, self.ngf, self.latent = check_size(size), ngf, checked_latent(latent)
-        self.latent_map = bool(latent_map)
+        self.latent_map, self.grey_output = bool(latent_map), bool(grey_output)
         self.in_channels, self.out_channels = in_channels, out_channels
 
         def conv(i: int, o: int, kernel: int, stride: int = 1, bias: bool = False) -> nn.Conv2d:
@@ -367,7 +371,7 @@ class ResnetGenerator(nn.Module):
         self.decoder = nn.Sequential(
             normed(nn.Upsample(scale_factor=2, mode="nearest"), conv(widths[2], widths[1], 3), width=widths[1]),
             normed(nn.Upsample(scale_factor=2, mode="nearest"), conv(widths[1], widths[0], 3), width=widths[0]),
-            conv(widths[0], out_channels, 7, bias=True), nn.Tanh())
+            conv(widths[0], 1 if self.grey_output else out_channels, 7, bias=True), nn.Tanh())
         self.apply(init_weights)
 
     feature_levels = 3  # levels :meth:`encode` may return: the 7x7 stem and the two stride-2 convs
@@ -380,31 +384,40 @@ class ResnetGenerator(nn.Module):
         x = with_latent_code(self, x, z)
         for block in self.encoder:
             x = block(x)
-        return self.decoder(self.blocks(x))
+        x = self.decoder(self.blocks(x))
+        return x.repeat(1, self.out_channels, 1, 1) if self.grey_output else x
 
     def encode(self, x: torch.Tensor, levels: tuple[int, ...]) -> list[torch.Tensor]:
         """The encoder's outputs at ``levels`` (:func:`encoder_outputs`)."""
         return encoder_outputs(self, self.encoder, x, levels)
 
 
+def grey_targets(images: torch.Tensor) -> bool:
+    """True when every image of uint8 N x 3 x S x S ``images`` (N > 0) is grey: R = G = B at every pixel, as a
+    monochrome sensor's frames are once decoded to three channels."""
+    return len(images) > 0 and images.shape[1] == 3 and bool(
+        torch.equal(images[:, 0], images[:, 1]) and torch.equal(images[:, 1], images[:, 2]))
+
+
 def build_generator(settings: dict, in_channels: int = 3) -> nn.Module:
     """The generator ``settings`` name (``generator``: 'unet', the default, or 'resnet'), from its size, ngf,
     latent, latent_map and (the U-Net's) kernel, skips, upsample and padding keys. The ResNet always resizes and reflects, so it
     ignores ``upsample`` and ``padding``; it has no skip connections, so ``skips`` other than all (None) is refused. Raises ValueError for
-    that and for an unknown kind."""
+    that and for an unknown kind. ``grey_output`` (absent: False) makes either draw one channel, repeated."""
     kind = settings.get("generator", "unet")
     latent, latent_map = settings.get("latent", 0), settings.get("latent_map", False)
+    grey = settings.get("grey_output", False)
     if kind == "unet":
         return UNetGenerator(settings["size"], settings["ngf"], settings["kernel"], in_channels=in_channels,
                              skips=settings.get("skips"), latent=latent,
                              upsample=settings.get("upsample", "transpose"), padding=settings.get("padding", "zeros"),
-                             latent_map=latent_map)
+                             latent_map=latent_map, grey_output=grey)
     if kind == "resnet":
         if settings.get("skips") is not None:
             raise ValueError(f"class_gan.skips ({settings['skips']}) is a U-Net setting: set it to 'all' with "
                              f"class_gan.generator: resnet, which has no skip connections")
         return ResnetGenerator(settings["size"], settings["ngf"], in_channels=in_channels, latent=latent,
-                               latent_map=latent_map)
+                               latent_map=latent_map, grey_output=grey)
     raise ValueError(f"unknown generator {kind!r} (allowed: {', '.join(GENERATORS)})")
 
 

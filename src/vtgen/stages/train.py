@@ -43,7 +43,7 @@ from vtgen.core.device import resolve_device, resolve_precision
 from vtgen.core.domain import DIRECTIONS
 from vtgen.core.gan import random_positioning, to_model_range, to_uint8
 from vtgen.core.metrics import colour_ssim
-from vtgen.core.models import count_parameters, fixed_codes
+from vtgen.core.models import count_parameters, fixed_codes, grey_targets
 from vtgen.core.readers import fit_feature_reader
 from vtgen.core.referee import at_side, distinct_images, Referee, train_referee
 from vtgen.core.roi import random_crops
@@ -310,6 +310,15 @@ def objective_settings(settings: dict, translation: dict, objective: str, direct
     if terms.get("views") == 1:
         terms.pop("views")  # the centre tile alone: the same
     return dict(settings, objective="class_gan", **terms)
+
+
+def output_settings(settings: dict, translation: dict, targets: torch.Tensor) -> tuple[dict, str]:
+    """``settings`` with ``grey_output: true`` when ``translation.grey_output`` is auto and every training target is
+    grey (:func:`grey_targets`), so the generator draws one channel, repeated; otherwise unchanged (no key, so the
+    checkpoints hashed from them stay as they were). Also the phrase the training line prints."""
+    if translation["grey_output"] == "auto" and grey_targets(targets):
+        return dict(settings, grey_output=True), f", grey output (all {len(targets)} training targets have R = G = B)"
+    return settings, ""
 
 
 def validation_l1(generator: torch.nn.Module, validation: PairData, batch_size: int = 32,
@@ -1051,6 +1060,7 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
                                    resolve_device(run["device"]).type)
     objective, objective_reason = resolve_objective(run["objective"], data)
     settings = objective_settings(settings, run, objective, direction)
+    settings, output_note = output_settings(settings, run, data.targets)
     frames = len(data.targets)
     if settings.get("views", 1) > 1:
         started = time.perf_counter()
@@ -1064,7 +1074,7 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
     print(f"train {direction}/{scope}: {len(data.targets)} training pairs ({int(data.aligned.sum())} aligned), "
           f"preset '{run['preset']}' at {settings['size']} px, {settings['iterations']} iterations of batch "
           f"{settings['batch_size']}, precision {run['precision']}, conditioning {conditioning.kind}, "
-          f"objective {objective} ({objective_reason})")
+          f"objective {objective} ({objective_reason}){output_note}")
     with atomic_output_dir(out_dir) as tmp:
         live, log = _live_logger(tmp / "dvclive")
         checkpoints = Path(checkpoint_root) / direction / scope
