@@ -415,3 +415,32 @@ def test_networks_on_cuda():
         assert out.shape == shape and out.is_cuda and torch.isfinite(out).all()
         with torch.autocast(device_type="cuda", dtype=torch.bfloat16):
             assert torch.isfinite(net(x.to(memory_format=torch.channels_last)).float()).all()
+
+
+@pytest.mark.parametrize("kind", ["unet", "resnet"])
+def test_a_grey_output_generator_draws_one_channel_repeated(kind):
+    from vtgen.core.models import build_generator
+
+    settings = {"size": 32, "ngf": 8, "kernel": 4, "generator": kind, "latent": 4}
+    torch.manual_seed(0)
+    colour = build_generator(settings)
+    torch.manual_seed(0)
+    grey = build_generator(dict(settings, grey_output=True))
+    x = rand_images(3, 32)
+    made = grey(x, torch.zeros(3, 4))
+    assert made.shape == (3, 3, 32, 32) and torch.equal(made[:, 0], made[:, 2]) and torch.equal(made[:, 1], made[:, 2])
+    assert made.std() > 0
+    # the same network but the last convolution, which makes one channel instead of three
+    assert count_parameters(colour) - count_parameters(grey) == 2 * (count_parameters(colour.decoder[-1] if kind == "unet"
+                                                                                       else colour.decoder[-2]) // 3)
+    assert not torch.equal(colour(x, torch.zeros(3, 4))[:, 0], colour(x, torch.zeros(3, 4))[:, 1])
+
+
+def test_grey_targets_needs_every_pixel_of_every_image_grey():
+    from vtgen.core.models import grey_targets
+
+    images = torch.randint(0, 256, (4, 1, 8, 8), dtype=torch.uint8).repeat(1, 3, 1, 1)
+    assert grey_targets(images)
+    images[3, 2, 7, 7] ^= 1
+    assert not grey_targets(images)
+    assert not grey_targets(images[:0])

@@ -8,6 +8,7 @@ import pandas as pd
 import pytest
 import torch
 import yaml
+from PIL import Image
 
 import vtgen.core.translator as translator_module
 from conftest import pair_tables, REPO, TINY_MODEL, write_image
@@ -178,6 +179,32 @@ def test_run_train_writes_generator_summary_and_loss_log(tmp_path, monkeypatch):
         run_train(tiny_params(), "v2t", "a", "pairs", "models/v2t/a", "ckpt", progress=False)
 
 
+
+
+@pytest.mark.parametrize("switch, tiles, grey", [("auto", "grey", True), ("never", "grey", False), ("auto", "colour", False)])
+def test_a_generator_for_grey_targets_draws_one_channel(tmp_path, monkeypatch, switch, tiles, grey):
+    # translation.grey_output: auto and every training target grey (R = G = B) -> the model draws one channel,
+    # repeated, and train.json's settings say so; colour targets or `never` add no settings key
+    from conftest import tiny_params
+    from vtgen.io.checkpoints import load_translator
+
+    monkeypatch.chdir(tmp_path)
+    pairs, splits = pair_tables(tmp_path)
+    if tiles == "grey":
+        for path in splits.loc[splits.modality == "tactile", "path"]:
+            image = np.asarray(Image.open(tmp_path / path).convert("L"))
+            write_image(tmp_path / path, np.repeat(image[:, :, None], 3, axis=2))
+    (tmp_path / "pairs").mkdir()
+    pairs.to_parquet(tmp_path / "pairs/v2t.parquet")
+    splits.to_parquet(tmp_path / "pairs/splits.parquet")
+    params = tiny_params()
+    params["translation"]["grey_output"] = switch
+    summary = run_train(params, "v2t", "all", "pairs", "models/v2t/all", "ckpt", progress=False)
+    assert summary["settings"].get("grey_output", False) is grey
+    generator, _ = load_translator(tmp_path / "models/v2t/all")
+    out = generator(torch.rand(2, 3, 32, 32) * 2 - 1)
+    assert out.shape == (2, 3, 32, 32)
+    assert (torch.equal(out[:, 0], out[:, 1]) and torch.equal(out[:, 1], out[:, 2])) is grey
 
 
 def mixed_pairs() -> PairData:
