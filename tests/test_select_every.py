@@ -1,6 +1,6 @@
 """class_gan.select_every: a run scores its generator every n steps by the classifier-view FID of its translated
 validation inputs and yields the best snapshot (the referee's scale, the choice, a resumed run's choice, the
-switch's off state and train.json's record)."""
+switch's off state and train.json's record); the same classifier as capacity auto's judge of class pairs."""
 
 from __future__ import annotations
 
@@ -12,7 +12,8 @@ from torch import nn
 
 from test_class_gan import CLASS_GAN, rendered_class_pairs, SETTINGS
 from vtgen.core.conditioning import Conditioning
-from vtgen.stages.train import objective_settings, selection_record, train_translator
+from vtgen.stages.train import (build_judge, checkpoint_keys, objective_settings, PairData, selection_record,
+                               train_translator, validation_by_class)
 from vtgen.core.referee import distinct_images, train_referee
 
 CLASSIFY = {"size": 32, "width": 0.25, "epochs": 4, "batch_size": 8, "lr": 1e-3}
@@ -134,3 +135,54 @@ def test_without_validation_pairs_the_referee_is_not_built_and_the_log_says_why(
     assert "no validation split to select by; the run keeps the last step's generator" in capsys.readouterr().out
     referee = build_referee(dict(SETTINGS, select_every=250), data, data, CLASSIFY, seed=0)
     assert referee is not None and len(referee.inputs) == len(data.inputs)
+
+
+# ---------------------------------------------------------------- capacity auto's judge (capacity.class_signal)
+
+JUDGE_CLASSIFY = dict(CLASSIFY, epochs=25)
+
+
+def echoed(data):
+    """Class pairs whose inputs are their own targets, so Echo 'translates' each input into a real target."""
+    return PairData(data.targets.clone(), data.targets.clone(), list(data.classes), data.aligned.clone(),
+                    data.targets.clone(), data.input_pool)
+
+
+def test_the_judge_gives_real_images_their_class_and_a_flat_image_the_chance_level():
+    data = rendered_class_pairs(4, 32, seed=0)
+    judge = train_referee(data.targets, data.classes, data.inputs, data.classes, JUDGE_CLASSIFY, seed=0)
+    real = judge.recognition(data.targets, data.classes)
+    flat = judge.recognition(torch.zeros_like(data.targets), data.classes)
+    assert real.shape == (len(data.targets),) and bool(((real >= 0) & (real <= 1)).all())
+    assert float(real.mean()) > 0.6  # three classes: chance 1/3
+    assert float(flat.mean()) == pytest.approx(1 / 3, abs=1e-6)  # one image for all: its probabilities average to 1/3
+    assert float(judge.recognition(data.targets[:2], ["velvet", "velvet"]).sum()) == 0.0  # a class it never saw
+
+
+def test_with_a_judge_a_class_pair_scores_its_recognition_minus_the_spread_gap():
+    data = echoed(rendered_class_pairs(4, 32, seed=0))
+    judge = train_referee(data.targets, data.classes, data.inputs, data.classes, JUDGE_CLASSIFY, seed=0)
+    judged = validation_by_class(Echo(), data, judge=judge)
+    for name in set(data.classes):  # Echo's outputs are the real targets: spread ratio 1, no penalty
+        rows = [i for i, c in enumerate(data.classes) if c == name]
+        assert judged[name] == pytest.approx(float(judge.recognition(data.targets[rows], [name] * len(rows)).mean()))
+    flat = validation_by_class(Flat(), data, judge=judge)
+    assert all(flat[name] < judged[name] - 0.5 for name in judged)  # collapsed (penalty 1) and unrecognised
+    assert validation_by_class(Echo(), data) != judged  # without a judge: the colour and contrast score
+
+
+def test_the_judge_is_built_only_for_recognition_and_classes_without_aligned_validation_pairs():
+    data = rendered_class_pairs(4, 32, seed=0)
+    validation = rendered_class_pairs(2, 32, seed=1)
+    given = train_referee(data.targets, data.classes, validation.inputs, validation.classes, CLASSIFY, seed=0)
+    assert build_judge("colour", data, validation, given, CLASSIFY, 0) is None
+    assert build_judge("recognition", data, validation, given, CLASSIFY, 0) is given  # select_every's, reused
+    trained = build_judge("recognition", data, validation, None, CLASSIFY, 0)
+    assert trained is not None and trained.class_names == tuple(sorted(set(data.classes)))
+    aligned = PairData(validation.inputs, validation.targets, validation.classes,
+                       torch.ones(len(validation.classes), dtype=torch.bool), validation.pool_images, validation.input_pool)
+    assert build_judge("recognition", data, aligned, None, CLASSIFY, 0) is None  # Colour-SSIM scores every class
+    # a checkpoint written with one signal is not resumed with the other: the early-stopping history differs
+    settings = dict(SETTINGS, **CLASS_GAN, iterations=6)
+    assert checkpoint_keys(settings, RUN, "v2t", "all", data, judged=True)["params"] != \
+        checkpoint_keys(settings, RUN, "v2t", "all", data)["params"]

@@ -1,9 +1,11 @@
-"""Judging a training run's snapshots by what they translate (``class_gan.select_every``).
+"""Judging a training run's snapshots by what they translate (``class_gan.select_every``), and capacity auto's
+class-paired validations (``translation.capacity.class_signal: recognition``).
 
 :class:`Referee`: a real-only classifier of the target modality, trained on the distinct training targets, whose
 penultimate features give the classifier-view FID (Heusel et al. 2017) of a snapshot's translated validation
 inputs against those training targets. Class-paired data has no aligned validation pairs to score a snapshot
-by; a distribution metric does not need them.
+by; a distribution metric does not need them, nor does the classifier's probability of the input's class
+(:meth:`Referee.recognition`).
 """
 
 from __future__ import annotations
@@ -37,13 +39,15 @@ def at_side(images: torch.Tensor, side: int) -> torch.Tensor:
 class Referee:
     """Scores a generator by the classifier-view FID of its translations of ``inputs`` (the validation inputs,
     with their class names ``classes`` for a generator told the class) against ``reference`` (features of
-    the real training targets), in ``encoder``'s view at ``side`` px. Lower is better."""
+    the real training targets), in ``encoder``'s view at ``side`` px. Lower is better. ``class_names`` are the
+    classifier's outputs in order (:meth:`recognition`)."""
 
     encoder: torch.nn.Module
     reference: torch.Tensor
     side: int
     inputs: torch.Tensor
     classes: tuple[str, ...]
+    class_names: tuple[str, ...] = ()
 
     def score(self, generator: torch.nn.Module, conditioning: Conditioning) -> float:
         labels = conditioning.labels(list(self.classes)) if conditioning.needs_labels else None
@@ -52,6 +56,22 @@ class Referee:
         made = translate(generator, self.inputs, conditioning=conditioning, labels=labels)
         generator.train(was_training)
         return fid(self.reference, image_features(self.encoder, at_side(made, self.side)))
+
+    @torch.no_grad()
+    def recognition(self, images: torch.Tensor, classes: list[str]) -> torch.Tensor:
+        """Per image (uint8 N x 3 x S x S, its class name in ``classes``), the probability the referee's
+        classifier gives that class (softmax of its logits, eval mode); 0 for a class it was not trained on."""
+        model = self.encoder.model
+        device = next(model.parameters()).device
+        was_training = model.training
+        model.eval()
+        logits = torch.cat([model(at_side(images[i:i + 64], self.side).to(device)).float().cpu()
+                            for i in range(0, len(images), 64)]) if len(images) else torch.empty(0, len(self.class_names))
+        model.train(was_training)
+        probabilities = torch.softmax(logits, dim=1)
+        position = {name: i for i, name in enumerate(self.class_names)}
+        return torch.tensor([float(probabilities[row, position[name]]) if name in position else 0.0
+                             for row, name in enumerate(classes)], dtype=torch.float64)
 
 
 def train_referee(targets: torch.Tensor, target_classes: list[str], inputs: torch.Tensor, input_classes: list[str],
@@ -69,4 +89,4 @@ def train_referee(targets: torch.Tensor, target_classes: list[str], inputs: torc
     images = at_side(targets[rows], cfg["size"])
     run = train_classifier(images, labels, images, labels, len(names), cfg, seed)
     encoder = classifier_encoder(run.model.eval())
-    return Referee(encoder, image_features(encoder, images), cfg["size"], inputs, tuple(input_classes))
+    return Referee(encoder, image_features(encoder, images), cfg["size"], inputs, tuple(input_classes), tuple(names))

@@ -346,12 +346,15 @@ def validation_l1(generator: torch.nn.Module, validation: PairData, batch_size: 
 
 @torch.no_grad()
 def validation_by_class(generator: torch.nn.Module, validation: PairData, conditioning: Conditioning | None = None,
-                        batch_size: int = 32) -> dict[str, float]:
+                        batch_size: int = 32, judge: Referee | None = None) -> dict[str, float]:
     """Per class, a validation quality where higher is better, in eval mode: the mean aligned Colour-SSIM
     (Wang et al. 2004, 255 range) over the class's aligned validation pairs; for a class without aligned
-    pairs, minus the mean over channels of |mean_gen - mean_real| + |std_gen - std_real| of its generated
-    and real validation targets (pixel values in [0, 1]), a set-level score of colour and contrast, minus
-    min(1, |1 - r|), r the within-class spread ratio of :func:`spread_ratio` (0 for a collapsed class)."""
+    pairs, a set-level score minus min(1, |1 - r|), r the within-class spread ratio of :func:`spread_ratio`
+    (0 for a collapsed class). The set-level score is, with a ``judge``, the mean probability its real-only
+    classifier of the target modality gives the class for the class's translated validation inputs
+    (:meth:`Referee.recognition`: is the output recognisable as its input's class); without one, minus the mean
+    over channels of |mean_gen - mean_real| + |std_gen - std_real| of the generated and real validation targets
+    (pixel values in [0, 1]: colour and contrast)."""
     device = next(generator.parameters()).device
     was_training = generator.training
     generator.eval()
@@ -375,9 +378,13 @@ def validation_by_class(generator: torch.nn.Module, validation: PairData, condit
                                              validation.targets[keep].permute(0, 2, 3, 1).numpy(), 255.0).mean())
         else:
             keep = torch.from_numpy(rows)
-            a, b = made[keep].double() / 255, validation.targets[keep].double() / 255
-            gap = (a.mean(dim=(0, 2, 3)) - b.mean(dim=(0, 2, 3))).abs() + (a.std(dim=(0, 2, 3)) - b.std(dim=(0, 2, 3))).abs()
-            scores[name] = -float(gap.mean()) - min(1.0, abs(1.0 - spread_ratio(made[keep], validation.targets[keep])))
+            if judge is not None:
+                level = float(judge.recognition(made[keep], [name] * int(keep.sum())).mean())
+            else:
+                a, b = made[keep].double() / 255, validation.targets[keep].double() / 255
+                gap = (a.mean(dim=(0, 2, 3)) - b.mean(dim=(0, 2, 3))).abs() + (a.std(dim=(0, 2, 3)) - b.std(dim=(0, 2, 3))).abs()
+                level = -float(gap.mean())
+            scores[name] = level - min(1.0, abs(1.0 - spread_ratio(made[keep], validation.targets[keep])))
     return scores
 
 
@@ -450,6 +457,7 @@ class Job:
     class_names: tuple[str, ...] = ()  # the class_gan objective's class index (sorted training classes)
     guide: torch.nn.Module | None = None  # class_gan.semantic's target-modality classifier (build_guide)
     referee: Referee | None = None  # class_gan.select_every's judge of snapshots (build_referee)
+    judge: Referee | None = None  # capacity auto's reader of class-paired validation outputs (build_judge)
 
     @property
     def class_gan(self) -> bool:
@@ -491,15 +499,18 @@ class RunState:
 # ---------------------------------------------------------------- resume
 
 def checkpoint_keys(settings: dict, run: dict, direction: str, scope: str, data: PairData,
-                    conditioning: Conditioning | None = None) -> dict:
+                    conditioning: Conditioning | None = None, judged: bool = False) -> dict:
     """The three things a checkpoint must match to be resumed, each a SHA-256: ``params`` (the preset without
-    ``iterations``, seed, precision, direction, scope, conditioning kind and classes), ``data``
+    ``iterations``, seed, precision, direction, scope, conditioning kind and classes; ``judged``: the per-class
+    validations read class-paired outputs with a judge, see :func:`validation_by_class`), ``data``
     (:meth:`PairData.fingerprint`, which covers the reference images, taken from the training targets) and
     ``code`` (every vtgen source file this stage runs)."""
     conditioning = conditioning or Conditioning()
     params = {"settings": {k: v for k, v in settings.items() if k != "iterations"}, "seed": run["seed"],
               "precision": run["precision"], "direction": direction, "scope": scope,
               "conditioning": [conditioning.kind, list(conditioning.classes)]}
+    if judged:
+        params["validation_by_class"] = "recognition"
     return {"params": hashlib.sha256(json.dumps(params, sort_keys=True).encode()).hexdigest(),
             "data": data.fingerprint(), "code": code_fingerprint("vtgen.stages.train")}
 
@@ -693,7 +704,8 @@ def _window_row(losses: torch.Tensor, training: TranslatorTraining, job: Job, st
     if _checkpoints_at(state.step, job) and job.validation is not None and bool(job.validation.aligned.any()):
         row["val_l1"] = validation_l1(training.output_generator, job.validation, conditioning=job.conditioning)
     if job.evaluates_at(state.step):
-        row["val_by_class"] = validation_by_class(training.output_generator, job.validation, job.conditioning)
+        row["val_by_class"] = validation_by_class(training.output_generator, job.validation, job.conditioning,
+                                                  judge=job.judge)
     if job.selects_at(state.step):
         row["val_fid"] = job.referee.score(training.output_generator, job.conditioning)
     return row
@@ -739,7 +751,8 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
                      checkpoint_dir: Path | None = None, on_log=None, progress: bool = True,
                      validation: PairData | None = None, conditioning: Conditioning | None = None,
                      eval_every: int | None = None, stop=None, label: str | None = None,
-                     guide: torch.nn.Module | None = None, referee: Referee | None = None) -> TrainResult:
+                     guide: torch.nn.Module | None = None, referee: Referee | None = None,
+                     judge: Referee | None = None) -> TrainResult:
     """Train one conditional GAN on ``data`` for ``settings['iterations']`` steps of :class:`TranslatorTraining`.
 
     ``settings`` is a presets block (its keys plus batch_size, iterations, noise); ``run`` holds device,
@@ -751,6 +764,7 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
     ``guide`` is the classifier ``class_gan.semantic`` needs (:func:`build_guide`). With ``referee`` and
     ``class_gan.select_every`` n > 0, every n steps and at the last the row holds ``val_fid`` (:meth:`Referee.score`)
     and the run returns the snapshot with the lowest (its step and value in ``TrainResult.selected``).
+    ``judge`` scores the per-class validations of class-paired outputs (:func:`validation_by_class`).
     A non-finite or out-of-range loss or weight raises
     TrainingDiverged naming the step, the quantity and the last good checkpoint.
     """
@@ -761,8 +775,9 @@ def train_translator(data: PairData, settings: dict, run: dict, direction: str, 
         torch.set_num_threads(run["threads"])
     job = Job(f"{direction}/{scope}{f' ({label})' if label else ''}", settings, run, device,
               Path(checkpoint_dir) / CHECKPOINT_NAME if checkpoint_dir else None,
-              checkpoint_keys(settings, run, direction, scope, data, conditioning), validation,
-              conditioning or Conditioning(), eval_every, stop, tuple(sorted(set(data.classes))), guide, referee)
+              checkpoint_keys(settings, run, direction, scope, data, conditioning, judge is not None), validation,
+              conditioning or Conditioning(), eval_every, stop, tuple(sorted(set(data.classes))), guide, referee,
+              judge)
     training, sampler, state = _start(job)
     for row in state.history:  # a resumed run logs the rows it inherits again, so the log is whole
         if on_log:
@@ -824,7 +839,7 @@ def _live_logger(folder: Path):
 def train_capacity_auto(data: PairData, validation: PairData, settings: dict, run: dict, direction: str, scope: str,
                         checkpoint_dir: Path | None = None, on_log=None, progress: bool = True,
                         conditioning: Conditioning | None = None, guide: torch.nn.Module | None = None,
-                        referee: Referee | None = None) -> tuple[TrainResult, dict, dict]:
+                        referee: Referee | None = None, judge: Referee | None = None) -> tuple[TrainResult, dict, dict]:
     """``translation.capacity: auto``: the smallest width and fewest iterations that reach the largest width's
     validation quality, per class, for one model.
 
@@ -849,14 +864,16 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
     probes, results = {}, {}
     for width in widths:
         done = None if probe_steps >= settings["iterations"] else _finished_probe(
-            folder(width), dict(at[width], iterations=probe_steps), run, direction, scope, data, conditioning)
+            folder(width), dict(at[width], iterations=probe_steps), run, direction, scope, data, conditioning,
+            judge is not None)
         if done is not None:  # a rerun: this probe finished before (its run may have gone on since)
             print(f"train {direction}/{scope}: width probe {width} taken from its checkpoint")
             probes[width] = done
             continue
         result = train_translator(data, dict(at[width], iterations=probe_steps), run, direction, scope, folder(width),
                                   progress=progress, validation=validation, conditioning=conditioning,
-                                  eval_every=cap["eval_every"], label=f"width probe {width}", guide=guide)
+                                  eval_every=cap["eval_every"], label=f"width probe {width}", guide=guide,
+                                  judge=judge)
         probes[width] = {"val_by_class": result.history[-1]["val_by_class"], "seconds": round(result.seconds, 2)}
         results[width] = result
     reference = probes[widths[-1]]["val_by_class"]
@@ -867,7 +884,7 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
                              data, at[chosen], dict(run, resume=True), direction, scope, folder(chosen),
                              on_log=on_log, progress=progress, validation=validation, conditioning=conditioning,
                              eval_every=cap["eval_every"], stop=lambda history: all_settled(history, tolerance, patience),
-                             label=f"width {chosen}, early stopping", guide=guide, referee=referee)
+                             label=f"width {chosen}, early stopping", guide=guide, referee=referee, judge=judge)
     if chosen in results and final is not results[chosen] and final.resumed_from == probe_steps:
         final.resumed_from = results[chosen].resumed_from  # continuing this call's own probe is not a resume
     settled = settled_classes(final.history, tolerance, patience)
@@ -879,8 +896,9 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
     record = {
         "mode": "auto", "widths": widths, "probe_iterations": probe_steps, "eval_every": cap["eval_every"],
         "tolerance": tolerance, "patience": patience,
-        "metric": "validation Colour-SSIM per class (aligned pairs); for class pairs minus colour, contrast and "
-                  "within-class spread gaps (validation_by_class)",
+        "metric": "validation Colour-SSIM per class (aligned pairs); for class pairs " + (
+            "a real-only target classifier's mean probability of the class" if judge is not None else
+            "minus colour and contrast gaps") + ", minus the within-class spread gap (validation_by_class)",
         "probe": {str(w): p for w, p in probes.items()}, "chosen_width": chosen, "steps": final.steps,
         "max_iterations": settings["iterations"], "stopped_early": final.steps < settings["iterations"],
         "per_class": {name: {"width_needed": needed[name], "settled_at_step": settled.get(name)} for name in needed},
@@ -894,7 +912,7 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
 
 
 def _finished_probe(folder: Path | None, settings: dict, run: dict, direction: str, scope: str, data: PairData,
-                    conditioning: Conditioning | None) -> dict | None:
+                    conditioning: Conditioning | None, judged: bool = False) -> dict | None:
     """The width probe's record (``val_by_class`` at step ``settings['iterations']``, seconds) from a checkpoint
     in ``folder`` that matches this run and has passed that step, or None (then the probe trains)."""
     path = folder / CHECKPOINT_NAME if folder else None
@@ -905,7 +923,7 @@ def _finished_probe(folder: Path | None, settings: dict, run: dict, direction: s
     except Exception:  # noqa: BLE001 - an unreadable checkpoint is dealt with by train_translator
         return None
     precision, _ = resolve_precision(run["precision"], resolve_device(run["device"]))
-    keys = checkpoint_keys(settings, dict(run, precision=precision), direction, scope, data, conditioning)
+    keys = checkpoint_keys(settings, dict(run, precision=precision), direction, scope, data, conditioning, judged)
     steps = settings["iterations"]
     if not isinstance(saved, dict) or saved.get("fingerprint") != keys or saved.get("step", 0) < steps:
         return None
@@ -996,6 +1014,24 @@ def build_referee(settings: dict, data: PairData, validation: PairData | None, c
     return referee
 
 
+def build_judge(signal: str, data: PairData, validation: PairData, referee: Referee | None, classify: dict,
+                seed: int) -> Referee | None:
+    """Capacity auto's reader of class-paired validation outputs (``translation.capacity.class_signal``):
+    for ``recognition``, when the validation split has a class without aligned pairs, the referee (a real-only
+    classifier of the target modality, :func:`vtgen.core.referee.train_referee`; ``class_gan.select_every``'s
+    when there is one, so it is trained once); else None (aligned classes are scored by Colour-SSIM)."""
+    classes, aligned = np.array(validation.classes), validation.aligned.numpy()
+    if signal != "recognition" or all((aligned & (classes == name)).any() for name in set(validation.classes)):
+        return None
+    if referee is not None:
+        return referee
+    judge = train_referee(data.targets, data.classes, validation.inputs, validation.classes, classify,
+                          seed + REFEREE_SEED_OFFSET)
+    print(f"capacity auto: classes without aligned validation pairs are scored by a real-only classifier of the "
+          f"target modality (trained on {len(judge.reference)} training targets): its mean probability of the class")
+    return judge
+
+
 def selection_record(settings: dict, result: TrainResult, validation: PairData | None) -> dict:
     """What train.json says about ``class_gan.select_every``: which step's generator was kept and why."""
     every = settings.get("select_every") or 0
@@ -1079,8 +1115,11 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
         live, log = _live_logger(tmp / "dvclive")
         checkpoints = Path(checkpoint_root) / direction / scope
         if run["capacity"]["mode"] == "auto" and validation is not None:
+            judge = build_judge(run["capacity"]["class_signal"], data, validation, referee, params["classify"],
+                                run["seed"])
             result, settings, capacity = train_capacity_auto(data, validation, settings, run, direction, scope,
-                                                             checkpoints, log, progress, conditioning, guide, referee)
+                                                             checkpoints, log, progress, conditioning, guide, referee,
+                                                             judge)
         else:
             result = train_translator(data, settings, run, direction, scope, checkpoints, on_log=log,
                                       progress=progress, validation=validation, conditioning=conditioning,
