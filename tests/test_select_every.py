@@ -167,8 +167,16 @@ def test_with_a_judge_a_class_pair_scores_its_recognition_minus_the_spread_gap()
         rows = [i for i, c in enumerate(data.classes) if c == name]
         assert judged[name] == pytest.approx(float(judge.recognition(data.targets[rows], [name] * len(rows)).mean()))
     flat = validation_by_class(Flat(), data, judge=judge)
-    assert all(flat[name] < judged[name] - 0.5 for name in judged)  # collapsed (penalty 1) and unrecognised
+    assert all(flat[name] < judged[name] - 0.5 for name in judged)  # collapsed (collapse gap 1) and unrecognised
     assert validation_by_class(Echo(), data) != judged  # without a judge: the colour and contrast score
+    # outputs spread four times as much as the real targets: no gap with a judge, the full spread gap without
+    faint = PairData(data.inputs, (data.targets // 4 + 96).to(torch.uint8), data.classes, data.aligned,
+                     data.pool_images, data.input_pool)
+    wide = validation_by_class(Echo(), faint, judge=judge)
+    for name in set(data.classes):
+        rows = [i for i, c in enumerate(data.classes) if c == name]
+        assert wide[name] == pytest.approx(float(judge.recognition(data.inputs[rows], [name] * len(rows)).mean()))
+    assert all(score < -0.9 for score in validation_by_class(Echo(), faint).values())
 
 
 def test_the_judge_is_built_only_for_recognition_and_classes_without_aligned_validation_pairs():

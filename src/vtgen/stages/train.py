@@ -348,13 +348,15 @@ def validation_l1(generator: torch.nn.Module, validation: PairData, batch_size: 
 def validation_by_class(generator: torch.nn.Module, validation: PairData, conditioning: Conditioning | None = None,
                         batch_size: int = 32, judge: Referee | None = None) -> dict[str, float]:
     """Per class, a validation quality where higher is better, in eval mode: the mean aligned Colour-SSIM
-    (Wang et al. 2004, 255 range) over the class's aligned validation pairs; for a class without aligned
-    pairs, a set-level score minus min(1, |1 - r|), r the within-class spread ratio of :func:`spread_ratio`
-    (0 for a collapsed class). The set-level score is, with a ``judge``, the mean probability its real-only
-    classifier of the target modality gives the class for the class's translated validation inputs
-    (:meth:`Referee.recognition`: is the output recognisable as its input's class); without one, minus the mean
-    over channels of |mean_gen - mean_real| + |std_gen - std_real| of the generated and real validation targets
-    (pixel values in [0, 1]: colour and contrast)."""
+    (Wang et al. 2004, 255 range) over the class's aligned validation pairs. For a class without aligned pairs,
+    with r the within-class spread ratio of :func:`spread_ratio` (0 for a collapsed class):
+
+    - with a ``judge``: the mean probability its real-only classifier of the target modality gives the class for
+      the class's translated validation inputs (:meth:`Referee.recognition`: is the output recognisable as its
+      input's class) minus the collapse gap max(0, 1 - 2r) (0 from half the real spread on, issue 24's bar;
+      spreading more is left to the classifier, which does not recognise noise);
+    - without: minus the mean over channels of |mean_gen - mean_real| + |std_gen - std_real| of the generated and
+      real validation targets (pixel values in [0, 1]: colour and contrast), minus the spread gap min(1, |1 - r|)."""
     device = next(generator.parameters()).device
     was_training = generator.training
     generator.eval()
@@ -378,13 +380,14 @@ def validation_by_class(generator: torch.nn.Module, validation: PairData, condit
                                              validation.targets[keep].permute(0, 2, 3, 1).numpy(), 255.0).mean())
         else:
             keep = torch.from_numpy(rows)
+            spread = spread_ratio(made[keep], validation.targets[keep])
             if judge is not None:
-                level = float(judge.recognition(made[keep], [name] * int(keep.sum())).mean())
+                recognised = float(judge.recognition(made[keep], [name] * int(keep.sum())).mean())
+                scores[name] = recognised - max(0.0, 1.0 - 2.0 * spread)
             else:
                 a, b = made[keep].double() / 255, validation.targets[keep].double() / 255
                 gap = (a.mean(dim=(0, 2, 3)) - b.mean(dim=(0, 2, 3))).abs() + (a.std(dim=(0, 2, 3)) - b.std(dim=(0, 2, 3))).abs()
-                level = -float(gap.mean())
-            scores[name] = level - min(1.0, abs(1.0 - spread_ratio(made[keep], validation.targets[keep])))
+                scores[name] = -float(gap.mean()) - min(1.0, abs(1.0 - spread))
     return scores
 
 
@@ -897,8 +900,9 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
         "mode": "auto", "widths": widths, "probe_iterations": probe_steps, "eval_every": cap["eval_every"],
         "tolerance": tolerance, "patience": patience,
         "metric": "validation Colour-SSIM per class (aligned pairs); for class pairs " + (
-            "a real-only target classifier's mean probability of the class" if judge is not None else
-            "minus colour and contrast gaps") + ", minus the within-class spread gap (validation_by_class)",
+            "a real-only target classifier's mean probability of the class minus the collapse gap"
+            if judge is not None else "minus colour and contrast gaps and the within-class spread gap") +
+            " (validation_by_class)",
         "probe": {str(w): p for w, p in probes.items()}, "chosen_width": chosen, "steps": final.steps,
         "max_iterations": settings["iterations"], "stopped_early": final.steps < settings["iterations"],
         "per_class": {name: {"width_needed": needed[name], "settled_at_step": settled.get(name)} for name in needed},
