@@ -1000,6 +1000,14 @@ def build_guide(settings: dict, data: PairData, classify: dict, seed: int) -> to
     return run.model.eval()
 
 
+def _real_only_referee(data: PairData, validation: PairData, classify: dict, seed: int) -> Referee:
+    """The real-only target classifier both ``select_every`` and capacity auto's ``recognition`` read with
+    (:func:`vtgen.core.referee.train_referee` on the distinct training targets, seeded with ``seed`` +
+    :data:`REFEREE_SEED_OFFSET`, its inputs the validation inputs): one seed, so the two are the same classifier."""
+    return train_referee(data.targets, data.classes, validation.inputs, validation.classes, classify,
+                         seed + REFEREE_SEED_OFFSET)
+
+
 def build_referee(settings: dict, data: PairData, validation: PairData | None, classify: dict,
                   seed: int) -> Referee | None:
     """``class_gan.select_every``'s judge of snapshots (:func:`vtgen.core.referee.train_referee`: a classifier of
@@ -1011,8 +1019,7 @@ def build_referee(settings: dict, data: PairData, validation: PairData | None, c
         print(f"class_gan.select_every: {settings['select_every']} is set, but the pairs have no validation split "
               f"to select by; the run keeps the last step's generator (train.json: selection)")
         return None
-    referee = train_referee(data.targets, data.classes, validation.inputs, validation.classes, classify,
-                            seed + REFEREE_SEED_OFFSET)
+    referee = _real_only_referee(data, validation, classify, seed)
     print(f"class_gan.select_every: referee classifier trained on {len(referee.reference)} training targets; "
           f"every {settings['select_every']} steps the validation FID of {len(referee.inputs)} translated inputs")
     return referee
@@ -1029,8 +1036,7 @@ def build_judge(signal: str, data: PairData, validation: PairData, referee: Refe
         return None
     if referee is not None:
         return referee
-    judge = train_referee(data.targets, data.classes, validation.inputs, validation.classes, classify,
-                          seed + REFEREE_SEED_OFFSET)
+    judge = _real_only_referee(data, validation, classify, seed)
     print(f"capacity auto: classes without aligned validation pairs are scored by a real-only classifier of the "
           f"target modality (trained on {len(judge.reference)} training targets): its mean probability of the class")
     return judge
