@@ -406,27 +406,46 @@ def spread_ratio(generated: torch.Tensor, real: torch.Tensor, side: int = 64) ->
     return spread(generated) / real_spread if real_spread > 0 else 1.0
 
 
-def settled_classes(history: list[dict], tolerance: float, patience: int) -> dict[str, int | None]:
+def settled_classes(history: list[dict], tolerance: float, patience: int,
+                    floor: dict[str, float] | None = None) -> dict[str, int | None]:
     """Early stopping per class from the ``val_by_class`` rows of ``history``.
 
     A class has settled once its best score has risen by at most ``tolerance`` over its last ``patience``
-    evaluations; its value is then the first step whose score came within ``tolerance`` of that best
-    (what the class needed), else None (still improving)."""
+    evaluations and has reached its ``floor`` (if given: :func:`recognition_floor`; a class not yet learnt
+    cannot have settled on a plateau); its value is then the first step whose score came within ``tolerance`` of
+    that best (what the class needed), else None (still improving, or below its floor)."""
     rows = [r for r in history if "val_by_class" in r]
+    floor = floor or {}
     settled: dict[str, int | None] = {}
     for name in (rows[-1]["val_by_class"] if rows else {}):
         scores = [r["val_by_class"][name] for r in rows]
         best = np.maximum.accumulate(scores)
-        if len(scores) > patience and best[-1] - best[-1 - patience] <= tolerance:
+        if (len(scores) > patience and best[-1] - best[-1 - patience] <= tolerance
+                and best[-1] >= floor.get(name, -np.inf)):
             settled[name] = next(r["step"] for r, v in zip(rows, scores) if v >= best[-1] - tolerance)
         else:
             settled[name] = None
     return settled
 
 
-def all_settled(history: list[dict], tolerance: float, patience: int) -> bool:
+def recognition_floor(judge: Referee, validation: PairData) -> dict[str, float]:
+    """Per class without aligned validation pairs, the score it must reach before it can settle under a
+    ``judge`` (:func:`settled_classes`): min(1/K, r/2), K the judge's classes and r the mean probability the
+    judge gives the class for its real validation targets (:meth:`Referee.recognition`). Chance is the bar for
+    "learnt something"; half the real images' own recognition lowers it for a class the judge barely knows."""
+    classes, aligned = np.array(validation.classes), validation.aligned.numpy()
+    floor = {}
+    for name in sorted(set(validation.classes)):
+        rows = classes == name
+        if not (rows & aligned).any():
+            real = float(judge.recognition(validation.targets[torch.from_numpy(rows)], [name] * int(rows.sum())).mean())
+            floor[name] = min(1.0 / len(judge.class_names), real / 2)
+    return floor
+
+
+def all_settled(history: list[dict], tolerance: float, patience: int, floor: dict[str, float] | None = None) -> bool:
     """True when every class of :func:`settled_classes` has settled (False before any evaluation)."""
-    settled = settled_classes(history, tolerance, patience)
+    settled = settled_classes(history, tolerance, patience, floor)
     return bool(settled) and all(v is not None for v in settled.values())
 
 
@@ -851,8 +870,9 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
        largest width's. The model takes the largest width any class needs.
     2. Early stopping: that width's probe run continues (from its checkpoint) up to the preset's iterations,
        validated per class every ``eval_every`` steps, and stops once every class has settled
-       (:func:`settled_classes`: its best rose by at most ``tolerance`` over ``patience`` validations); with
-       ``referee``, this continuation selects its snapshot as :func:`train_translator` says.
+       (:func:`settled_classes`: its best rose by at most ``tolerance`` over ``patience`` validations and, scored
+       by a ``judge``, reached :func:`recognition_floor`); with ``referee``, this continuation selects its
+       snapshot as :func:`train_translator` says.
 
     Returns (the result, the settings of the chosen model, the ``capacity`` record of train.json: per class the
     width needed and the step it settled at, and the compute - GFLOP from :func:`training_step_flops` and
@@ -883,14 +903,19 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
     needed = {name: next(w for w in widths if probes[w]["val_by_class"][name] >= reference[name] - tolerance)
               for name in reference}
     chosen = max(needed.values())
+    floor = recognition_floor(judge, validation) if judge is not None else {}
+    if floor:
+        print(f"train {direction}/{scope}: a class scored by recognition settles only from its floor up (chance "
+              f"{1 / len(judge.class_names):.3f}, or half its real images' score): "
+              + ", ".join(f"{name} {value:.3f}" for name, value in floor.items()))
     final = results[chosen] if probe_steps >= settings["iterations"] else train_translator(
                              data, at[chosen], dict(run, resume=True), direction, scope, folder(chosen),
                              on_log=on_log, progress=progress, validation=validation, conditioning=conditioning,
-                             eval_every=cap["eval_every"], stop=lambda history: all_settled(history, tolerance, patience),
+                             eval_every=cap["eval_every"], stop=lambda history: all_settled(history, tolerance, patience, floor),
                              label=f"width {chosen}, early stopping", guide=guide, referee=referee, judge=judge)
     if chosen in results and final is not results[chosen] and final.resumed_from == probe_steps:
         final.resumed_from = results[chosen].resumed_from  # continuing this call's own probe is not a resume
-    settled = settled_classes(final.history, tolerance, patience)
+    settled = settled_classes(final.history, tolerance, patience, floor)
     flops = {w: training_step_flops(at[w], 3 + extra, guide=guide) for w in widths}
     actual = sum(probe_steps * flops[w] for w in widths if w != chosen) + final.steps * flops[chosen]
     fixed = settings["iterations"] * flops[widths[-1]]
@@ -900,12 +925,14 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
         "mode": "auto", "widths": widths, "probe_iterations": probe_steps, "eval_every": cap["eval_every"],
         "tolerance": tolerance, "patience": patience,
         "metric": "validation Colour-SSIM per class (aligned pairs); for class pairs " + (
-            "a real-only target classifier's mean probability of the class minus the collapse gap"
+            "a real-only target classifier's mean probability of the class minus the collapse gap, settling only "
+            "from min(chance, half its real images' probability) up"
             if judge is not None else "minus colour and contrast gaps and the within-class spread gap") +
             " (validation_by_class)",
         "probe": {str(w): p for w, p in probes.items()}, "chosen_width": chosen, "steps": final.steps,
         "max_iterations": settings["iterations"], "stopped_early": final.steps < settings["iterations"],
-        "per_class": {name: {"width_needed": needed[name], "settled_at_step": settled.get(name)} for name in needed},
+        "per_class": {name: {"width_needed": needed[name], "settled_at_step": settled.get(name),
+                              **({"floor": round(floor[name], 4)} if name in floor else {})} for name in needed},
         "compute": {"gflop_per_step": {str(w): round(f / 1e9, 3) for w, f in flops.items()},
                     "gflop": round(actual / 1e9, 1), "fixed_large_gflop": round(fixed / 1e9, 1),
                     "saved_share": round(1 - actual / fixed, 3), "seconds": round(seconds, 1),
