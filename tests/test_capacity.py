@@ -6,7 +6,7 @@ import numpy as np
 import torch
 
 from conftest import TINY_MODEL
-from vtgen.stages.train import PairData, settled_classes, train_capacity_auto
+from vtgen.stages.train import all_settled, PairData, settled_classes, train_capacity_auto
 
 SETTINGS = dict(TINY_MODEL, gan_loss="bce", l1_weight=100.0, optimizer="adam", lr=0.002, betas=[0.5, 0.999],
                 noise=False, batch_size=4, iterations=240)
@@ -37,6 +37,15 @@ def test_settled_classes_waits_for_patience_and_names_the_step_needed():
     settled = settled_classes(rows, tolerance=0.02, patience=2)
     assert settled == {"a": 20, "b": None}  # a: best rose 0.01 over 2 validations, first within 0.02 at step 20
     assert settled_classes(rows[:2], 0.02, 2) == {"a": None, "b": None}  # too few validations yet
+
+
+def test_a_flat_class_below_its_floor_has_not_settled():
+    """A class still at chance is on the plateau before it learns, not settled (capacity auto's judge)."""
+    rows = [{"step": s, "val_by_class": {"a": 0.03, "b": 0.6}} for s in (10, 20, 30, 40)]
+    assert settled_classes(rows, 0.02, 2) == {"a": 10, "b": 10} and all_settled(rows, 0.02, 2)
+    floored = settled_classes(rows, 0.02, 2, floor={"a": 0.083, "b": 0.083})
+    assert floored == {"a": None, "b": 10} and not all_settled(rows, 0.02, 2, {"a": 0.083})
+    assert settled_classes(rows, 0.02, 2, floor={"a": 0.03}) == {"a": 10, "b": 10}  # reaching the floor is enough
 
 
 def test_easy_class_gets_the_smaller_or_shorter_setting_and_train_json_says_so():

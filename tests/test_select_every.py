@@ -12,7 +12,7 @@ from torch import nn
 
 from test_class_gan import CLASS_GAN, rendered_class_pairs, SETTINGS
 from vtgen.core.conditioning import Conditioning
-from vtgen.stages.train import (build_judge, checkpoint_keys, objective_settings, PairData, selection_record,
+from vtgen.stages.train import (build_judge, checkpoint_keys, objective_settings, PairData, recognition_floor, selection_record,
                                train_translator, validation_by_class)
 from vtgen.core.referee import distinct_images, train_referee
 
@@ -194,3 +194,23 @@ def test_the_judge_is_built_only_for_recognition_and_classes_without_aligned_val
     settings = dict(SETTINGS, **CLASS_GAN, iterations=6)
     assert checkpoint_keys(settings, RUN, "v2t", "all", data, judged=True)["params"] != \
         checkpoint_keys(settings, RUN, "v2t", "all", data)["params"]
+
+
+def test_a_class_settles_under_the_judge_only_from_chance_or_half_its_real_images_score_up():
+    data = rendered_class_pairs(4, 32, seed=0)
+    judge = train_referee(data.targets, data.classes, data.inputs, data.classes, JUDGE_CLASSIFY, seed=0)
+    aligned = torch.tensor([name == "felt" for name in data.classes])  # felt has aligned pairs: Colour-SSIM, no floor
+    validation = PairData(data.inputs, data.targets, data.classes, aligned, data.pool_images, data.input_pool)
+    floor = recognition_floor(judge, validation)
+    assert set(floor) == {"plain_weave", "corduroy"}
+    for name, value in floor.items():
+        rows = [i for i, c in enumerate(data.classes) if c == name]
+        real = float(judge.recognition(data.targets[rows], [name] * len(rows)).mean())
+        assert value == pytest.approx(min(1 / 3, real / 2))
+    # black "real" targets: the judge's probabilities for one image sum to 1 over three classes, so some class
+    # gets at most 1/3 and its floor is half of that, below chance
+    black = torch.zeros_like(data.targets)
+    dark = recognition_floor(judge, PairData(data.inputs, black, data.classes, aligned, data.pool_images, data.input_pool))
+    probability = {name: float(judge.recognition(black[:1], [name])[0]) for name in dark}
+    assert dark == pytest.approx({name: min(1 / 3, p / 2) for name, p in probability.items()})
+    assert min(dark.values()) < 1 / 3
