@@ -81,3 +81,17 @@ def test_a_rerun_that_trains_afresh_logs_what_the_first_run_logged(tmp_path):
     assert record["steps"] == 80 and again.resumed_from == 0 and again_record["steps"] == 80
     assert [r["step"] for r in first.history if "val_by_class" in r] == [20, 40, 60, 80]
     assert logged(again.history) == logged(first.history)
+
+
+def test_the_report_table_gives_each_class_its_floor_and_says_when_one_never_settled():
+    from vtgen.io.report_tables import capacity_table
+
+    compute = {"gflop": 10.0, "fixed_large_gflop": 40.0, "saved_share": 0.75, "seconds": 5.0,
+               "fixed_large_seconds_estimate": 20.0}
+    run = {"direction": "v2t", "scope": "all", "capacity": {
+        "mode": "auto", "chosen_width": 32, "steps": 1500, "compute": compute,
+        "per_class": {"felt": {"width_needed": 16, "settled_at_step": 400},
+                      "satin": {"width_needed": 32, "settled_at_step": None, "floor": 0.0833}}}}
+    table = capacity_table([run]).set_index("class")
+    assert table.loc["satin", "settled at step"] == "not settled by 1500" and table.loc["satin", "floor"] == 0.0833
+    assert table.loc["felt", "settled at step"] == 400 and table.loc["felt", "floor"] == ""  # aligned: no floor

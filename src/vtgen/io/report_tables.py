@@ -300,8 +300,8 @@ def models_table(runs: list[dict]) -> pd.DataFrame:
 
 
 def capacity_table(runs: list[dict]) -> pd.DataFrame | None:
-    """Per model trained with capacity auto and per class: the width it needed, the step it settled at, and the
-    model's compute against the fixed large model (train.json ``capacity``); None when no model used auto."""
+    """Per model trained with capacity auto and per class: the width it needed, the step it settled at (and the
+    floor it had to reach, scored by recognition), and the model's compute against the fixed large model (train.json ``capacity``); None when no model used auto."""
     rows = []
     for r in runs:
         cap = r.get("capacity") or {}
@@ -313,6 +313,7 @@ def capacity_table(runs: list[dict]) -> pd.DataFrame | None:
                          "width needed": choice["width_needed"],
                          "settled at step": choice["settled_at_step"] if choice["settled_at_step"] is not None
                          else f"not settled by {cap['steps']}",
+                         "floor": choice.get("floor", ""),
                          "model width": cap["chosen_width"], "model steps": cap["steps"],
                          "GFLOP (fixed large)": f"{compute['gflop']:.0f} ({compute['fixed_large_gflop']:.0f})",
                          "compute saved": f"{100 * compute['saved_share']:.0f}%",
@@ -325,4 +326,5 @@ def capacity_view(runs: list[dict]) -> dict | None:
     table = capacity_table(runs)
     return None if table is None else table_view(
         table, "Capacity auto: per class, the smallest width within tolerance of the largest at the width probe, "
-               "and the step its validation Colour-SSIM settled at; compute against the fixed large model")
+               "and the step its validation score settled at (Colour-SSIM; for class pairs the judge's recognition, "
+               "which settles only from its floor up); compute against the fixed large model")
