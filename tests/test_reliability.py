@@ -413,3 +413,28 @@ def test_plain_snakemake_applies_the_default_profile(tmp_path):
     dry = run(["snakemake", "-n", "data/pairs"], project)
     assert "workflow specific profile profiles/default" in dry.stderr
     assert (project / "profiles/default").resolve() == (project / "workflow/profiles/default").resolve()
+
+
+def test_a_disk_filling_up_mid_checkpoint_is_reported_as_a_full_disk_and_the_partial_file_removed(tmp_path, monkeypatch):
+    """torch's zip writer reports a short write as RuntimeError ("unexpected pos ..."), seen when /tmp filled up
+    during a main job; with the filesystem (nearly) full that is a full disk, else the error names the file."""
+    from collections import namedtuple
+
+    from vtgen.io import checkpoints
+
+    def short_write(obj, handle):
+        handle.write(b"x" * 1000)
+        raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 90459392 vs 90459280")
+
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(checkpoints.torch, "save", short_write)
+    target = tmp_path / "last.pt"
+    monkeypatch.setattr(checkpoints.shutil, "disk_usage", lambda path: usage(10**9, 10**9 - 4096, 4096))
+    with pytest.raises(OSError) as full:
+        checkpoints.save_atomic({"step": 1}, target)
+    assert full.value.errno == errno.ENOSPC and full.value.filename == str(tmp_path / "last.pt.tmp")
+    assert not (tmp_path / "last.pt.tmp").exists() and not target.exists()
+    monkeypatch.setattr(checkpoints.shutil, "disk_usage", lambda path: usage(10**12, 10**9, 10**11))
+    with pytest.raises(RuntimeError, match=f"^{tmp_path / 'last.pt.tmp'}: .*unexpected pos"):
+        checkpoints.save_atomic({"step": 1}, target)
+    assert not (tmp_path / "last.pt.tmp").exists()

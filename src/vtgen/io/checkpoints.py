@@ -4,8 +4,10 @@ classifier weights a user supplies, and atomic torch saves.
 
 from __future__ import annotations
 
+import errno
 import os
 import pickle
+import shutil
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -17,15 +19,28 @@ from vtgen.core.domain import DIRECTIONS
 from vtgen.core.models import build_generator
 
 
+LOW_SPACE_BYTES = 64 * 2**20
+"""Free space below which a failed torch save is taken for a full disk (:func:`save_atomic`)."""
+
+
 def save_atomic(obj, path: Path) -> None:
     """torch.save to a temporary sibling, then rename. Saving through a file object lets a full disk
-    surface as OSError(ENOSPC) naming the file (torch.save to a path hides it in a RuntimeError)."""
+    surface as OSError(ENOSPC) naming the file (torch.save to a path hides it in a RuntimeError); when the disk
+    fills up mid-file torch's zip writer still raises RuntimeError ("unexpected pos"), so a RuntimeError with
+    less than ``LOW_SPACE_BYTES`` free there is reported as ENOSPC too. The partial file is removed."""
     tmp = path.with_name(path.name + ".tmp")
     try:
         with open(tmp, "wb") as handle:
             torch.save(obj, handle)
     except OSError as exc:
+        tmp.unlink(missing_ok=True)
         raise OSError(exc.errno, exc.strerror, str(tmp)) from exc
+    except RuntimeError as exc:
+        full = shutil.disk_usage(tmp.parent).free < LOW_SPACE_BYTES
+        tmp.unlink(missing_ok=True)
+        if full:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp)) from exc
+        raise RuntimeError(f"{tmp}: {exc}") from exc
     os.replace(tmp, path)
 
 
