@@ -11,15 +11,13 @@ from pathlib import Path
 
 import torch
 
-from vtgen.io.checkpoints import save_atomic
-
 
 def save_classifier(path: Path, model, classes: list[str], about: dict) -> None:
     """The classify stage's real-only classifier of one modality (the score stage's feature encoder):
     weights, the class names in label order, and how it was built (``model.size``, ``model.width``).
-    Saved by :func:`vtgen.io.checkpoints.save_atomic`, so a full disk is reported as one."""
-    save_atomic({"state_dict": model.state_dict(), "classes": list(classes), "size": model.size,
-                 "width": model.width, **about}, Path(path))
+    Written into the stage's atomic output folder, so a plain save is enough."""
+    torch.save({"state_dict": model.state_dict(), "classes": list(classes), "size": model.size,
+                 "width": model.width, **about}, path)
 
 
 def load_classifier(path: str | Path):
