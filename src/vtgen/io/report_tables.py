@@ -301,7 +301,8 @@ def models_table(runs: list[dict]) -> pd.DataFrame:
 
 def capacity_table(runs: list[dict]) -> pd.DataFrame | None:
     """Per model trained with capacity auto and per class: the width it needed, the step it settled at (and the
-    floor it had to reach, scored by recognition), and the model's compute against the fixed large model (train.json ``capacity``); None when no model used auto."""
+    floor it had to reach, scored by recognition), and the model's compute against the fixed large model
+    (train.json ``capacity``); None when no model used auto."""
     rows = []
     for r in runs:
         cap = r.get("capacity") or {}
