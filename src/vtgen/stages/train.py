@@ -345,6 +345,13 @@ def validation_l1(generator: torch.nn.Module, validation: PairData, batch_size: 
 
 
 @torch.no_grad()
+def class_paired(validation: PairData) -> list[str]:
+    """The sorted class names of ``validation`` with no aligned pair: scored without Colour-SSIM
+    (:func:`validation_by_class`), by the judge where there is one."""
+    classes, aligned = np.array(validation.classes), validation.aligned.numpy()
+    return [name for name in sorted(set(validation.classes)) if not (aligned & (classes == name)).any()]
+
+
 def validation_by_class(generator: torch.nn.Module, validation: PairData, conditioning: Conditioning | None = None,
                         batch_size: int = 32, judge: Referee | None = None) -> dict[str, float]:
     """Per class, a validation quality where higher is better, in eval mode: the mean aligned Colour-SSIM
@@ -371,10 +378,11 @@ def validation_by_class(generator: torch.nn.Module, validation: PairData, condit
     made = torch.cat(outputs)
     classes = np.array(validation.classes)
     aligned = validation.aligned.numpy()
+    unaligned = set(class_paired(validation))
     scores = {}
     for name in sorted(set(validation.classes)):
         rows = classes == name
-        if (rows & aligned).any():
+        if name not in unaligned:
             keep = torch.from_numpy(rows & aligned)
             scores[name] = float(colour_ssim(made[keep].permute(0, 2, 3, 1).numpy(),
                                              validation.targets[keep].permute(0, 2, 3, 1).numpy(), 255.0).mean())
@@ -433,13 +441,12 @@ def recognition_floor(judge: Referee, validation: PairData) -> dict[str, float]:
     ``judge`` (:func:`settled_classes`): min(1/K, r/2), K the judge's classes and r the mean probability the
     judge gives the class for its real validation targets (:meth:`Referee.recognition`). Chance is the bar for
     "learnt something"; half the real images' own recognition lowers it for a class the judge barely knows."""
-    classes, aligned = np.array(validation.classes), validation.aligned.numpy()
+    classes = np.array(validation.classes)
     floor = {}
-    for name in sorted(set(validation.classes)):
+    for name in class_paired(validation):
         rows = classes == name
-        if not (rows & aligned).any():
-            real = float(judge.recognition(validation.targets[torch.from_numpy(rows)], [name] * int(rows.sum())).mean())
-            floor[name] = min(1.0 / len(judge.class_names), real / 2)
+        real = float(judge.recognition(validation.targets[torch.from_numpy(rows)], [name] * int(rows.sum())).mean())
+        floor[name] = min(1.0 / len(judge.class_names), real / 2)
     return floor
 
 
@@ -1058,8 +1065,7 @@ def build_judge(signal: str, data: PairData, validation: PairData, referee: Refe
     for ``recognition``, when the validation split has a class without aligned pairs, the referee (a real-only
     classifier of the target modality, :func:`vtgen.core.referee.train_referee`; ``class_gan.select_every``'s
     when there is one, so it is trained once); else None (aligned classes are scored by Colour-SSIM)."""
-    classes, aligned = np.array(validation.classes), validation.aligned.numpy()
-    if signal != "recognition" or all((aligned & (classes == name)).any() for name in set(validation.classes)):
+    if signal != "recognition" or not class_paired(validation):
         return None
     if referee is not None:
         return referee
