@@ -48,6 +48,16 @@ def test_a_flat_class_below_its_floor_has_not_settled():
     assert settled_classes(rows, 0.02, 2, floor={"a": 0.03}) == {"a": 10, "b": 10}  # reaching the floor is enough
 
 
+def test_one_lucky_validation_does_not_clear_the_floor():
+    """The floor is read on the mean of the last ``patience`` scores, not the best: a class scored 0.2 once on a
+    few images and 0 since has a flat best above its floor, but has not learnt (the fabric recipe's rib knit)."""
+    rows = [{"step": s, "val_by_class": {"a": a}} for s, a in [(10, 0.2), (20, 0.0), (30, 0.0), (40, 0.0)]]
+    assert settled_classes(rows, 0.02, 2) == {"a": 10}  # no floor: a plateau
+    assert settled_classes(rows, 0.02, 2, floor={"a": 0.083}) == {"a": None}
+    recovered = rows + [{"step": 50, "val_by_class": {"a": 0.1}}, {"step": 60, "val_by_class": {"a": 0.1}}]
+    assert settled_classes(recovered, 0.02, 2, floor={"a": 0.083}) == {"a": 10}  # held above it for 2 validations
+
+
 def test_easy_class_gets_the_smaller_or_shorter_setting_and_train_json_says_so():
     result, settings, record = train_capacity_auto(easy_and_hard(8, 0), easy_and_hard(3, 1), SETTINGS, RUN, "v2t",
                                                    "all", progress=False)

@@ -419,9 +419,10 @@ def settled_classes(history: list[dict], tolerance: float, patience: int,
     """Early stopping per class from the ``val_by_class`` rows of ``history``.
 
     A class has settled once its best score has risen by at most ``tolerance`` over its last ``patience``
-    evaluations and has reached its ``floor`` (if given: :func:`recognition_floor`; a class not yet learnt
-    cannot have settled on a plateau); its value is then the first step whose score came within ``tolerance`` of
-    that best (what the class needed), else None (still improving, or below its floor)."""
+    evaluations and the mean of those ``patience`` scores has reached its ``floor`` (if given:
+    :func:`recognition_floor`; a class not yet learnt cannot have settled on a plateau, and one lucky validation
+    of a few images does not clear the floor for it); its value is then the first step whose score came within
+    ``tolerance`` of that best (what the class needed), else None (still improving, or below its floor)."""
     rows = [r for r in history if "val_by_class" in r]
     floor = floor or {}
     settled: dict[str, int | None] = {}
@@ -429,7 +430,7 @@ def settled_classes(history: list[dict], tolerance: float, patience: int,
         scores = [r["val_by_class"][name] for r in rows]
         best = np.maximum.accumulate(scores)
         if (len(scores) > patience and best[-1] - best[-1 - patience] <= tolerance
-                and best[-1] >= floor.get(name, -np.inf)):
+                and np.mean(scores[-patience:]) >= floor.get(name, -np.inf)):
             settled[name] = next(r["step"] for r, v in zip(rows, scores) if v >= best[-1] - tolerance)
         else:
             settled[name] = None
@@ -878,7 +879,7 @@ def train_capacity_auto(data: PairData, validation: PairData, settings: dict, ru
     2. Early stopping: that width's probe run continues (from its checkpoint) up to the preset's iterations,
        validated per class every ``eval_every`` steps, and stops once every class has settled
        (:func:`settled_classes`: its best rose by at most ``tolerance`` over ``patience`` validations and, scored
-       by a ``judge``, reached :func:`recognition_floor`); with ``referee``, this continuation selects its
+       by a ``judge``, their mean reached :func:`recognition_floor`); with ``referee``, this continuation selects its
        snapshot as :func:`train_translator` says.
 
     Returns (the result, the settings of the chosen model, the ``capacity`` record of train.json: per class the
