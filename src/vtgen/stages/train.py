@@ -344,7 +344,6 @@ def validation_l1(generator: torch.nn.Module, validation: PairData, batch_size: 
     return total / len(keep)
 
 
-@torch.no_grad()
 def class_paired(validation: PairData) -> list[str]:
     """The sorted class names of ``validation`` with no aligned pair: scored without Colour-SSIM
     (:func:`validation_by_class`), by the judge where there is one."""
@@ -352,6 +351,7 @@ def class_paired(validation: PairData) -> list[str]:
     return [name for name in sorted(set(validation.classes)) if not (aligned & (classes == name)).any()]
 
 
+@torch.no_grad()
 def validation_by_class(generator: torch.nn.Module, validation: PairData, conditioning: Conditioning | None = None,
                         batch_size: int = 32, judge: Referee | None = None) -> dict[str, float]:
     """Per class, a validation quality where higher is better, in eval mode: the mean aligned Colour-SSIM
