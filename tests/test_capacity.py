@@ -6,7 +6,7 @@ import numpy as np
 import torch
 
 from conftest import TINY_MODEL
-from vtgen.stages.train import all_settled, PairData, settled_classes, train_capacity_auto
+from vtgen.stages.train import all_settled, PairData, settled_classes, train_capacity_auto, validation_by_class
 
 SETTINGS = dict(TINY_MODEL, gan_loss="bce", l1_weight=100.0, optimizer="adam", lr=0.002, betas=[0.5, 0.999],
                 noise=False, batch_size=4, iterations=240)
@@ -105,3 +105,21 @@ def test_the_report_table_gives_each_class_its_floor_and_says_when_one_never_set
     table = capacity_table([run]).set_index("class")
     assert table.loc["satin", "settled at step"] == "not settled by 1500" and table.loc["satin", "floor"] == 0.0833
     assert table.loc["felt", "settled at step"] == 400 and table.loc["felt", "floor"] == ""  # aligned: no floor
+
+
+def test_per_class_validation_builds_no_autograd_graph():
+    """validation_by_class scores in no-grad mode: every early-stopping check would otherwise keep the
+    generator's activation graph alive for the whole validation split."""
+    class Recorder(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.scale = torch.nn.Parameter(torch.ones(1))
+            self.grad_modes = []
+
+        def forward(self, x, z=None):
+            self.grad_modes.append(torch.is_grad_enabled())
+            return x * self.scale
+
+    generator = Recorder()
+    scores = validation_by_class(generator, easy_and_hard(2, 1))
+    assert set(scores) == {"easy", "hard"} and generator.grad_modes and not any(generator.grad_modes)
