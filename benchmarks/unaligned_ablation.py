@@ -57,8 +57,8 @@ from vtgen.stages.train import (build_conditioning, build_guide, build_referee, 
                                 output_settings, pairs_in, resolve_objective, train_translator, with_frame_views)
 from translation_quality import parse_variant  # the same name:key=value;... variants (benchmarks/ is on sys.path)
 
-def real_classifier(splits, modality: str, params: dict, root: Path, classes: list[str]):
-    """The classify stage's real-only classifier of ``modality`` (seed 0) and its test accuracy with n."""
+def real_classifier(splits, modality: str, params: dict, root: Path, classes: list[str], seed: int = 0):
+    """The classify stage's real-only classifier of ``modality`` (trained with ``seed``) and its test accuracy with n."""
     cfg = params["classify"]
     settings = {k: cfg[k] for k in ("size", "width", "epochs", "batch_size", "lr")}
     index = {c: i for i, c in enumerate(classes)}
@@ -69,7 +69,7 @@ def real_classifier(splits, modality: str, params: dict, root: Path, classes: li
                 torch.tensor([index[c] for c in rows["class"]]))
 
     (train_x, train_y), (test_x, test_y) = load("train"), load("test")
-    run = train_classifier(train_x, train_y, test_x, test_y, len(classes), settings, seed=0)
+    run = train_classifier(train_x, train_y, test_x, test_y, len(classes), settings, seed=seed)
     return run.model, run.test_accuracy[-1], len(test_y)
 
 
