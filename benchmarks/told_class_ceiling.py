@@ -22,7 +22,7 @@ it is printed for any run; the generator columns need one conditioned on the cla
 ``--judges N`` scores with N real-only classifiers of the target modality (seeds 0..N-1, as the classify stage
 trains three) and averages: GAN-test, the oracle, the real-only accuracies and so goal 3's threshold.
 
-    python benchmarks/told_class_ceiling.py --run <run folder whose models/v2t/all is conditioned on class>
+    python benchmarks/told_class_ceiling.py --run <run folder> --direction v2t --judges 3
 """
 
 from __future__ import annotations
