@@ -13,6 +13,7 @@ import yaml
 from conftest import tiny_params, write_image
 from vtgen.core.classifier import (AlexNet, TrainingDiverged, apply_weights, at_chance, first_conv, make_classifier,
                                    train_classifier, wilson_interval)
+from vtgen.core.confusion import confusion_counts, realistic_gan_test
 from vtgen.io.checkpoints import read_state_dict
 from vtgen.io.images import read_tiles
 from vtgen.stages.classify import ACCURACY_COLUMNS, low_data_subset, run_classify, SETTINGS
@@ -306,6 +307,10 @@ def test_stage_writes_tables_summary_and_plot(tmp_path, monkeypatch):
     overall = by_class[(by_class["class"] == "(all)") & (by_class["setting"] == "real")].iloc[0]
     assert overall["accuracy"] == pytest.approx(summary["settings"]["real"]["final_mean"])
     assert summary["settings"]["real"]["interval"] == pytest.approx(list(wilson_interval(overall["accuracy"], 6)), abs=1e-6)
+    # the real-only confusion: rows are the 2 test images of each class, its diagonal the real accuracy
+    confusion = np.array(summary["real_confusion"])
+    assert confusion.shape == (3, 3) and confusion.sum(axis=1) == pytest.approx([2, 2, 2])
+    assert np.trace(confusion) / 6 == pytest.approx(summary["settings"]["real"]["final_mean"], abs=1e-6)
     assert [c["setting"] for c in summary["comparisons"]] == ["real+generated", "low-data real+generated"]
     for item in summary["comparisons"]:
         assert item["overlap"] == (item["verdict"] == "within noise (95% intervals overlap)")
@@ -383,6 +388,32 @@ def test_wilson_interval_and_the_at_chance_rule():
     assert at_chance(0.5, 6, 3) and not at_chance(1.0, 6, 3)  # 6 images cannot tell 0.5 from 1/3; 1.0 they can
     assert not at_chance(0.0, 200, 3)  # far below chance is distinguishable from chance (it is worse)
     assert not at_chance(float("nan"), 0, 3) and not at_chance(0.3, 0, 3)  # nothing measured: nothing flagged
+
+
+def test_confusion_counts_average_the_runs():
+    labels = np.array([0, 0, 1, 1])
+    matrix = confusion_counts([np.array([0, 1, 1, 1]), np.array([0, 0, 0, 1])], labels, 2)
+    assert matrix.tolist() == [[1.5, 0.5], [0.5, 1.5]]
+
+
+def test_realistic_gan_test_replaces_each_input_by_a_real_image_of_the_class_read_or_told():
+    judge = np.array([[8.0, 2.0], [4.0, 6.0]])  # real targets: class 0 called 0 at 0.8, class 1 called 1 at 0.6
+    perfect_reader = np.diag([5.0, 5.0])
+    assert realistic_gan_test(perfect_reader, judge, told_class=False) == pytest.approx(0.7)
+    # a reader that calls every input class 0: each becomes a class-0 image, called 0 at 0.8 and 1 at 0.2
+    blind = np.array([[5.0, 0.0], [5.0, 0.0]])
+    assert realistic_gan_test(blind, judge, told_class=False) == pytest.approx((5 * 0.8 + 5 * 0.2) / 10)
+    # told the class, the reader's mistakes do not matter: the judge's accuracy weighted by the inputs' classes
+    assert realistic_gan_test(blind, judge, told_class=True) == pytest.approx(0.7)
+    skewed = np.array([[9.0, 0.0], [1.0, 0.0]])
+    assert realistic_gan_test(skewed, judge, told_class=True) == pytest.approx((9 * 0.8 + 1 * 0.6) / 10)
+    # a reader that swaps the two classes: each input becomes a real image of the other class
+    swapped = np.array([[0.0, 5.0], [5.0, 0.0]])
+    assert realistic_gan_test(swapped, judge, told_class=False) == pytest.approx((5 * 0.4 + 5 * 0.2) / 10)
+    # no real target of a class that is needed, shapes that differ, nothing read: no number
+    assert realistic_gan_test(blind, np.array([[0.0, 0.0], [4.0, 6.0]]), told_class=False) is None
+    assert realistic_gan_test(np.diag([1.0, 1.0, 1.0]), judge, told_class=False) is None
+    assert realistic_gan_test(np.zeros((2, 2)), judge, told_class=False) is None
 
 
 def test_non_finite_training_loss_stops_naming_the_epoch_and_seed():

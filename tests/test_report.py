@@ -175,7 +175,9 @@ def fake_run(root, at_chance: bool | None = None, greyscale: bool = False, half_
             "gan_test": {"setting": "real", "final_mean": 0.5, "images": 4, "interval": [0.15, 0.85]},
             "comparisons": [{"setting": "real+generated", "against": "real", "difference": 0.1, "overlap": True,
                              "verdict": "within noise (95% intervals overlap)"}],
-            "policy": _policy(modality)})
+            "policy": _policy(modality),
+            # real-only confusion on the 2 + 2 real test images (rows true class): tactile reads class 0 at 0.5
+            "real_confusion": [[2, 0], [1, 1]] if modality == "visual" else [[1, 1], [0, 2]]})
         _accuracy(modality).to_parquet(folders["classify"] / modality / "accuracy.parquet")
         _classify_by_class(modality).to_parquet(folders["classify"] / modality / "by_class.parquet")
         _timing(folders["classify"] / modality, "classify", 3.0)
@@ -389,6 +391,8 @@ def test_metrics_json_holds_headline_numbers_and_is_byte_identical_across_runs(t
     # final epoch (2), mean over seeds 0 and 1: 0.5 + 0.2 + 0.01
     assert flat(metrics["classify"]["tactile"]) == pytest.approx(
         {"real": 0.71, "real+generated": 0.81, "gan_test": 0.5, "gan_test_vs_real": 0.5 / 0.71, "seeds": 2,
+         # real touches of the class the visual classifier reads from each test photo: (2 x 0.5 + 0.5 + 1) / 4
+         "gan_test_realistic": 0.625,
          "real_test_images": 4,
          "gain_from_generated.real+generated": 0.1,
          # the policy's choice beside real only, so that dvc exp show reads both
@@ -737,3 +741,30 @@ def test_gan_test_caveat_says_what_the_generator_was_told():
     assert "input reader (network)" in older  # train.json from before the reader was recorded
     assert conditioned_gan_test_note("tactile", summary, [{"direction": "v2t", "conditioning": "none"},
                                                           {"direction": "t2v", "conditioning": "class"}]) is None
+
+
+def test_realistic_gan_test_reads_both_confusions_and_what_the_generator_was_told():
+    """The target modality's judge (tactile: class 0 called right at 0.5, class 1 at 1.0) scores real images of
+    the class each input shows: read by the input modality's classifier unless the generator was told it."""
+    from vtgen.io.report_metrics import realistic_gan_tests
+    from vtgen.stages.report import realistic_gan_test_note
+
+    def entry(confusion, classes=("a", "b")):
+        return {"summary": {"classes": list(classes), "real_confusion": confusion}}
+
+    classify = {"visual": entry([[2, 0], [1, 1]]), "tactile": entry([[1, 1], [0, 2]])}
+    runs = [{"direction": "v2t", "conditioning": "none"}, {"direction": "t2v", "conditioning": "class"}]
+    found = realistic_gan_tests(classify, runs)
+    # V2T told nothing: photos read (0,0), (0,0), (1,0), (1,1) -> touches of class 0, 0, 0, 1: 0.5 + 0.5 + 0.5 + 1
+    assert found["tactile"] == {"value": 0.625, "told_class": False, "inputs": 4}
+    # T2V told the class: each touch becomes a photo of its own class, called right at 1.0 and 0.5
+    assert found["visual"] == {"value": 0.75, "told_class": True, "inputs": 4}
+    untold = realistic_gan_tests(classify, [{"direction": "t2v", "conditioning": "inferred"}])
+    assert untold["visual"]["value"] == pytest.approx((1 * 1.0 + 1 * 0.5 + 2 * 0.5) / 4)  # the touches as read
+    # classes that differ between the two stages, or a confusion missing: no number rather than a wrong one
+    assert realistic_gan_tests({"visual": entry([[2, 0], [1, 1]], ("a", "c")), "tactile": classify["tactile"]}, runs) == {}
+    assert realistic_gan_tests({"visual": {"summary": {"classes": ["a", "b"]}}, "tactile": classify["tactile"]}, runs) == {}
+    note = realistic_gan_test_note("tactile", {"gan_test": {"final_mean": 0.061}}, found["tactile"])
+    assert "realistic GAN-test 0.625 beside the GAN-test's 0.061" in note and "visual real-only classifier" in note
+    assert "n = 4 test inputs" in note
+    assert realistic_gan_test_note("tactile", {"gan_test": {}}, found["tactile"]) is None

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import pandas as pd
 
-from vtgen.core.domain import DIRECTIONS
+from vtgen.core.confusion import realistic_gan_test
+from vtgen.core.domain import DIRECTIONS, direction_producing
 from vtgen.io.report_tables import DISTRIBUTION_BASELINES, has_value
 
 REFERENCE_LEVELS = {"real_train": "real_vs_real", "nearest_neighbour": "nearest_neighbour",
@@ -110,16 +111,43 @@ def classify_headline(entry: dict) -> dict:
     return _compact(result)
 
 
+def realistic_gan_tests(classify: dict, runs: list[dict]) -> dict:
+    """Per target modality, the GAN-test real held-out images would get in place of its translations
+    (:func:`vtgen.core.classifier.realistic_gan_test`, from both classify stages' ``real_confusion``):
+    {modality: {"value", "told_class", "inputs"}}. ``told_class`` when every model of the producing direction
+    was told each input's class (conditioning class or reference); otherwise the image of each input is of
+    the class the input modality's real-only classifier reads from it, as for a generator told nothing.
+    A modality is left out when either confusion is missing or their classes differ."""
+    found = {}
+    for target, source in (("tactile", "visual"), ("visual", "tactile")):
+        judge, reader = (classify.get(m, {}).get("summary") or {} for m in (target, source))
+        if not judge.get("real_confusion") or not reader.get("real_confusion") or judge.get("classes") != reader.get("classes"):
+            continue
+        kinds = {r.get("conditioning", "none") for r in runs
+                 if r.get("direction") == direction_producing(target) and r.get("status", "ok") == "ok"}
+        told = bool(kinds) and kinds <= {"class", "reference"}
+        value = realistic_gan_test(reader["real_confusion"], judge["real_confusion"], told)
+        if value is not None:
+            inputs = int(round(sum(map(sum, reader["real_confusion"]))))
+            found[target] = {"value": _number(value), "told_class": told, "inputs": inputs}
+    return found
+
+
 def headline_metrics(data: dict) -> dict:
     """The numbers for ``dvc metrics``: SSIM levels and distribution metrics per direction, accuracy per
-    modality and counts; no timings, dates, versions or paths."""
+    modality (with ``gan_test_realistic`` beside the GAN-test where :func:`realistic_gan_tests` found it) and
+    counts; no timings, dates, versions or paths."""
     goals = data["score_summary"].get("goals") or {}  # issue 24's numbers, each with its interval and n
     metrics = {d: _compact(ssim_headline(data["by_class"], d)
                            | distribution_headline(data["distribution"], data["memorisation"], d)
                            | {"goals": goals.get(d) or {}})
                for d in DIRECTIONS}
     metrics = _compact(metrics)
-    metrics["classify"] = _compact({m: classify_headline(e) for m, e in data["classify"].items()})
+    accuracy = {m: classify_headline(e) for m, e in data["classify"].items()}
+    for modality, oracle in (data.get("realistic_gan_test") or {}).items():
+        if accuracy.get(modality, {}).get("gan_test") is not None:
+            accuracy[modality]["gan_test_realistic"] = oracle["value"]
+    metrics["classify"] = _compact(accuracy)
     ingest = data["ingest"]
     metrics["counts"] = _compact({"classes": len(ingest.get("classes", [])), "images_kept": ingest.get("kept"),
                                   "quarantined": ingest.get("quarantined"),

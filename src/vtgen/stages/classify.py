@@ -51,6 +51,7 @@ from tqdm import tqdm
 
 from vtgen.core import generated_policy
 from vtgen.core.classifier import TrainingDiverged, at_chance, class_probabilities, train_classifier, wilson_interval
+from vtgen.core.confusion import confusion_counts
 from vtgen.io.checkpoints import read_state_dict
 from vtgen.io.classifiers import save_classifier
 from vtgen.io.tables import GENERATED_COLUMNS
@@ -268,7 +269,9 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     them relative to the working directory). Writes accuracy.parquet and accuracy.csv (one row per
     setting, seed and epoch; columns ACCURACY_COLUMNS, gan_test_accuracy NaN outside ``real``,
     val_accuracy NaN without validation images), summary.json (with ``chance`` and an ``at_chance``
-    flag per setting and for the GAN-test, see the module docstring, ``policy``: the generated images
+    flag per setting and for the GAN-test, see the module docstring, ``real_confusion``: the real-only
+    classifiers' confusion on the real test images, mean over seeds, rows true class and columns predicted in
+    ``classes`` order, ``policy``: the generated images
     the default adds, chosen on the validation split, and its test accuracy beside real only,
     ``precision`` and ``throughput``: training and evaluation images per second) and curves.png;
     prints a warning line per flagged setting. A non-finite training loss raises RuntimeError naming
@@ -307,10 +310,13 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
                           modality),
         accuracy_by_class({k: v for k, v in predictions.items() if k[0] == GAN_TEST}, sets["gan"][1].numpy(), classes,
                           modality)], ignore_index=True)
+    real_confusion = confusion_counts([p for (setting, _), p in predictions.items() if setting == "real"],
+                                      sets["test"][1].numpy(), len(classes))
     encoder = runs[("real", cfg["seeds"][0])]["run"].model
     summary.update(status="ok", chance=1.0 / len(classes), device=str(device), precision={"used": precision, "why": why},
                    counts=sets["counts"], settings=per_setting, skipped=skipped, gan_test=gan_test,
                    comparisons=compare_settings(per_setting), policy=choose_policy(plan, runs, sets, per_setting),
+                   real_confusion=[[round(float(v), 6) for v in row] for row in real_confusion],
                    test_images_per_class=sets["counts"]["per_class_real_test"],
                    encoder={"file": "encoder.pt", "setting": "real", "seed": cfg["seeds"][0]},
                    wall_seconds=round(float(table.groupby(["setting", "seed"])["seconds"].first().sum()), 2),

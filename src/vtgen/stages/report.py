@@ -45,7 +45,7 @@ import yaml
 from vtgen.core.domain import direction_producing, DIRECTIONS, MODALITIES
 from vtgen.io.provenance import code_version
 from vtgen.io.report_figures import write_figures
-from vtgen.io.report_metrics import headline_metrics
+from vtgen.io.report_metrics import headline_metrics, realistic_gan_tests
 from vtgen.io.report_pages import plain, read_json, render_page, table_view, write_json
 from vtgen.io.report_tables import (
     accuracy_table, capacity_view, comparison_table, distribution_table, final_accuracy_table, memorisation_table,
@@ -192,6 +192,7 @@ def run_facts(params: dict) -> dict:
 def collect(params: dict, inputs: ReportInputs) -> dict:
     """Every number and table the report shows, read from the input folders only."""
     runs = model_runs(inputs.models)
+    classify = classification(inputs.classify)
     synthetic = params["dataset"]["source"] == "synthetic"
     return {
         "title": "vtgen report" + (" (SYNTHETIC data)" if synthetic else ""), "synthetic": synthetic,
@@ -210,7 +211,8 @@ def collect(params: dict, inputs: ReportInputs) -> dict:
                                    "the score stage's distribution table"),
         "memorisation": read_table(inputs.scores / "memorisation.parquet", MEMORISATION_NEEDS,
                                    "the score stage's memorisation table"),
-        "classify": classification(inputs.classify), "timings": stage_timings(inputs, runs),
+        "classify": classify, "realistic_gan_test": realistic_gan_tests(classify, runs),
+        "timings": stage_timings(inputs, runs),
     }
 
 
@@ -239,7 +241,23 @@ def conditioned_gan_test_note(modality: str, summary: dict, runs: list[dict]) ->
             f"the real-only test accuracy ({real['final_mean']:.3f}), not as realism alone")
 
 
-def _classify_view(modality: str, entry: dict, runs: list[dict]) -> dict:
+def realistic_gan_test_note(modality: str, summary: dict, oracle: dict | None) -> str | None:
+    """What the GAN-test of ``modality`` would be with real held-out images in place of the translations
+    (``oracle``: one entry of :func:`vtgen.io.report_metrics.realistic_gan_tests`), beside the GAN-test."""
+    gan = (summary.get("gan_test") or {}).get("final_mean")
+    if not oracle or gan is None:
+        return None
+    source = "visual" if modality == "tactile" else "tactile"
+    of_class = ("its input's own class (the generator was told it)" if oracle["told_class"] else
+                f"the class the {source} real-only classifier reads from its input (a generator told nothing can "
+                f"know no more of the class than its input shows)")
+    return (f"realistic GAN-test {oracle['value']:.3f} beside the GAN-test's {gan:.3f}: the score had each translation "
+            f"been a real held-out {modality} image of {of_class}, by this stage's real-only classifiers (expected over "
+            f"n = {oracle['inputs']} test inputs). A GAN-test well below it is the generator's shortfall; at it, "
+            f"the data allows no more")
+
+
+def _classify_view(modality: str, entry: dict, runs: list[dict], oracle: dict | None = None) -> dict:
     summary, table = entry["summary"], entry["accuracy"]
     status = summary.get("status", "ok")
     tables = []
@@ -260,9 +278,10 @@ def _classify_view(modality: str, entry: dict, runs: list[dict]) -> dict:
                                  f"{seeds} [95% Wilson interval on n = {n if n else '?'} real test images"
                                  + (f", {gan_n} generated for the GAN-test" if gan_n else "")
                                  + "], beside the paper's values at the same iteration"))
-    caveat = conditioned_gan_test_note(modality, summary, runs) if status == "ok" else None
+    caveats = [conditioned_gan_test_note(modality, summary, runs), realistic_gan_test_note(modality, summary, oracle)]
+    caveats = [c for c in caveats if c] if status == "ok" else []
     return {"modality": modality, "status": status, "tables": tables, "at_chance": entry["at_chance"],
-            "classes": len(summary.get("classes", [])), "notes": summary.get("notes", []) + ([caveat] if caveat else [])}
+            "classes": len(summary.get("classes", [])), "notes": summary.get("notes", []) + caveats}
 
 
 def _direction_view(data: dict, params: dict, number: str, direction: str) -> dict:
@@ -333,7 +352,8 @@ def page_context(data: dict, figures: dict[str, bool], params: dict | None = Non
         "ms_ssim_note": None if ms_ssim == "computed" or not len(by_class) else f"MS-SSIM {ms_ssim}.",
         "ssim": [_direction_view(data, params, n, d) for n, d in (("I", "v2t"), ("II", "t2v"))
                  if d in set(by_class["direction"]) and d not in skipped],
-        "classify": [_classify_view(m, e, data["models"]) for m, e in data["classify"].items()],
+        "classify": [_classify_view(m, e, data["models"], (data.get("realistic_gan_test") or {}).get(m))
+                     for m, e in data["classify"].items()],
         "timings": table_view(timings[["job", "seconds", "finished"]],
                               "Wall time of each job (timing.json in its output folder)") if not timings.empty else None,
     }
