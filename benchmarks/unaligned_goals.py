@@ -90,6 +90,9 @@ def goal_rows(goals: dict, classify: dict, conditioning: dict | None = None) -> 
         reals = [(classify.get(m) or {}).get("real") for m in (source, target)]
         ok = None if gan is None or None in reals else gan >= 0.8 * min(reals)
         threshold = "-" if None in reals else f">= {0.8 * min(reals):.3g} (0.8 x min real-only {min(reals):.3g})"
+        realistic = (classify.get(target) or {}).get("gan_test_realistic")  # the report's realistic GAN-test
+        if realistic is not None:
+            threshold += f"; real images in place of the outputs: {realistic:.3g}"
         told = conditioning.get(direction) in TOLD_THE_CLASS
         item = f"3 GAN-test ({target})" + (f", told the class ({conditioning[direction]})" if told else "")
         rows.append((direction, item, "-" if gan is None else f"{gan:.3g}", threshold, _verdict(None if told else ok)))

@@ -448,10 +448,13 @@ def test_first_screen_answers_whether_generated_data_helps_before_the_long_lines
     assert "little room to help the low-data setting" in summary[first:verdicts]
     assert "too few groups" in summary[first:verdicts] and "&lt;b&gt;" in page[:page.index("<h2>Verdicts</h2>")]
     # the grid: one row per direction, one column per family, each cell coloured by its status
-    assert "| direction | KID (classifier) | memorisation (classifier) |" in summary
-    assert "| V2T | ok (0.05) | — |" in summary and "| T2V | ok (0.05) | warning (0.5) |" in summary
+    # and a last column: the GAN-test (0.5 [0.15, 0.85]) against the realistic one (0.625): below, within the noise
+    assert "| direction | KID (classifier) | memorisation (classifier) | GAN-test (of the realistic) |" in summary
+    assert "| V2T | ok (0.05) | — | unresolved (0.5 of 0.625) |" in summary
+    assert "| T2V | ok (0.05) | warning (0.5) | unresolved (0.5 of 0.625) |" in summary
     grid = page[page.index("Verdicts: direction x metric family"):page.index("<h2>Verdicts</h2>")]
     assert '<td class="ok">ok (0.05)</td>' in grid and '<td class="warning">warning (0.5)</td>' in grid
+    assert '<td class="unresolved">unresolved (0.5 of 0.625)</td>' in grid
     assert '<td class="not-scored">—</td>' in grid and "td.warning{background:#f8d7da" in page
 
 
@@ -768,3 +771,22 @@ def test_realistic_gan_test_reads_both_confusions_and_what_the_generator_was_tol
     assert "realistic GAN-test 0.625 beside the GAN-test's 0.061" in note and "visual real-only classifier" in note
     assert "n = 4 test inputs" in note
     assert realistic_gan_test_note("tactile", {"gan_test": {}}, found["tactile"]) is None
+
+
+def test_the_gan_test_column_is_ok_at_the_realistic_level_and_a_warning_below_it_beyond_the_noise():
+    from vtgen.io.report_verdicts import gan_test_verdicts
+
+    def data(gan, realistic):
+        return {"classify": {"tactile": {"summary": {"gan_test": gan}}},
+                "realistic_gan_test": {"tactile": {"value": realistic}}}
+
+    def status(gan, realistic):
+        return [v["status"] for v in gan_test_verdicts(data(gan, realistic))]
+
+    assert status({"final_mean": 0.30, "interval": [0.22, 0.39]}, 0.25) == ["ok"]
+    assert status({"final_mean": 0.20, "interval": [0.13, 0.28]}, 0.25) == ["unresolved"]
+    assert status({"final_mean": 0.06, "interval": [0.03, 0.12]}, 0.16) == ["warning"]  # the vt60 default's V2T
+    assert status({"final_mean": 0.12, "interval": [0.07, 0.19], "at_chance": True}, 0.11) == ["warning"]
+    (verdict,) = gan_test_verdicts(data({"final_mean": 0.06, "interval": [0.03, 0.12]}, 0.162))
+    assert verdict["direction"] == "v2t" and verdict["cell"] == "warning (0.06 of 0.162)"
+    assert gan_test_verdicts(data({}, 0.2)) == [] and gan_test_verdicts(data({"final_mean": 0.1, "interval": [0, 0.2]}, None)) == []

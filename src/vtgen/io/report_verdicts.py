@@ -6,7 +6,7 @@ them, adds a line for every direction not scored (and why), and marks warnings.
 
 from __future__ import annotations
 
-from vtgen.core.domain import DIRECTIONS
+from vtgen.core.domain import DIRECTIONS, MODALITIES, direction_producing
 from vtgen.io.report_pages import interval_cell
 
 
@@ -130,13 +130,37 @@ def policy_rows(data: dict) -> list[dict]:
     return rows
 
 
+GAN_TEST_FAMILY = "GAN-test (of the realistic)"
+
+
+def gan_test_verdicts(data: dict) -> list[dict]:
+    """One verdict per direction whose target modality has a GAN-test and a realistic GAN-test (the report's
+    ``realistic_gan_test``): ok when the GAN-test reaches the realistic one, unresolved when below it but
+    within the GAN-test's 95% Wilson interval, warning when below beyond that interval or at chance; ``cell`` is
+    the grid's text."""
+    found = []
+    for modality in MODALITIES:
+        gan = (((data.get("classify") or {}).get(modality) or {}).get("summary") or {}).get("gan_test") or {}
+        realistic = ((data.get("realistic_gan_test") or {}).get(modality) or {}).get("value")
+        value, interval = gan.get("final_mean"), gan.get("interval")
+        if value is None or realistic is None or not interval:
+            continue
+        status = ("warning" if gan.get("at_chance") or interval[1] < realistic
+                  else "ok" if value >= realistic else "unresolved")
+        found.append({"direction": direction_producing(modality), "family": GAN_TEST_FAMILY, "status": status,
+                      "cell": f"{status} ({value:.3g} of {realistic:.3g})"})
+    return found
+
+
 def verdict_grid(data: dict) -> dict | None:
     """The score stage's verdicts as one direction x family grid: ``{"families", "rows": [{"direction",
-    "cells": [{"status", "text"}]}]}``, each cell the status (VERDICT_COLOURS) and a short value; None
-    when there are no verdicts."""
-    found = data["score_summary"].get("verdicts") or []
-    if not found:
+    "cells": [{"status", "text"}]}]}``, each cell the status (VERDICT_COLOURS) and a short value, and a last
+    column for the GAN-test against the realistic one (:func:`gan_test_verdicts`); None when the score stage
+    has no verdicts."""
+    scored = data["score_summary"].get("verdicts") or []
+    if not scored:
         return None
+    found = scored + gan_test_verdicts(data)
     families = list(dict.fromkeys(v["family"] for v in found if v.get("family")))
     rows = []
     for direction in sorted({v["direction"] for v in found}, key=lambda d: list(DIRECTIONS).index(d)
@@ -149,7 +173,7 @@ def verdict_grid(data: dict) -> dict | None:
                 cells.append({"status": "not scored", "text": "—"})
                 continue
             value = v.get("generated")
-            text = v.get("status", "ok") + ("" if value is None else f" ({value:.3g})")
+            text = v.get("cell") or v.get("status", "ok") + ("" if value is None else f" ({value:.3g})")
             cells.append({"status": v.get("status", "ok"), "text": text})
         rows.append({"direction": direction.upper(), "cells": cells})
     return {"families": families, "rows": rows}
