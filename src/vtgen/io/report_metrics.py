@@ -113,7 +113,7 @@ def classify_headline(entry: dict) -> dict:
 
 def realistic_gan_tests(classify: dict, runs: list[dict]) -> dict:
     """Per target modality, the GAN-test real held-out images would get in place of its translations
-    (:func:`vtgen.core.classifier.realistic_gan_test`, from both classify stages' ``real_confusion``):
+    (:func:`vtgen.core.confusion.realistic_gan_test`, from both classify stages' ``real_confusion``):
     {modality: {"value", "told_class", "inputs"}}. ``told_class`` when every model of the producing direction
     was told each input's class (conditioning class or reference); otherwise the image of each input is of
     the class the input modality's real-only classifier reads from it, as for a generator told nothing.
