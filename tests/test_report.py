@@ -455,6 +455,7 @@ def test_first_screen_answers_whether_generated_data_helps_before_the_long_lines
     grid = page[page.index("Verdicts: direction x metric family"):page.index("<h2>Verdicts</h2>")]
     assert '<td class="ok">ok (0.05)</td>' in grid and '<td class="warning">warning (0.5)</td>' in grid
     assert '<td class="unresolved">unresolved (0.5 of 0.625)</td>' in grid
+    assert "The last column sets the GAN-test" in summary and "The last column sets the GAN-test" in page
     assert '<td class="not-scored">—</td>' in grid and "td.warning{background:#f8d7da" in page
 
 
@@ -790,3 +791,16 @@ def test_the_gan_test_column_is_ok_at_the_realistic_level_and_a_warning_below_it
     (verdict,) = gan_test_verdicts(data({"final_mean": 0.06, "interval": [0.03, 0.12]}, 0.162))
     assert verdict["direction"] == "v2t" and verdict["cell"] == "warning (0.06 of 0.162)"
     assert gan_test_verdicts(data({}, 0.2)) == [] and gan_test_verdicts(data({"final_mean": 0.1, "interval": [0, 0.2]}, None)) == []
+
+
+def test_the_grid_has_the_gan_test_column_and_says_so_only_where_there_is_a_realistic_gan_test():
+    from vtgen.io.report_verdicts import GAN_TEST_FAMILY, verdict_grid
+
+    scored = {"score_summary": {"verdicts": [{"direction": "v2t", "family": "KID (classifier)", "status": "ok",
+                                              "generated": 0.05}]}}
+    plain_grid = verdict_grid(scored)
+    assert plain_grid["families"] == ["KID (classifier)"] and not plain_grid["gan_test_column"]
+    with_oracle = verdict_grid(scored | {"classify": {"tactile": {"summary": {"gan_test": {
+        "final_mean": 0.06, "interval": [0.03, 0.12]}}}}, "realistic_gan_test": {"tactile": {"value": 0.16}}})
+    assert with_oracle["families"][-1] == GAN_TEST_FAMILY and with_oracle["gan_test_column"]
+    assert with_oracle["rows"][0]["cells"][-1] == {"status": "warning", "text": "warning (0.06 of 0.16)"}

@@ -154,7 +154,7 @@ def gan_test_verdicts(data: dict) -> list[dict]:
 
 def verdict_grid(data: dict) -> dict | None:
     """The score stage's verdicts as one direction x family grid: ``{"families", "rows": [{"direction",
-    "cells": [{"status", "text"}]}]}``, each cell the status (VERDICT_COLOURS) and a short value, and a last
+    "cells": [{"status", "text"}]}], "gan_test_column"}``, each cell the status (VERDICT_COLOURS) and a short value, and a last
     column for the GAN-test against the realistic one (:func:`gan_test_verdicts`); None when the score stage
     has no verdicts."""
     scored = data["score_summary"].get("verdicts") or []
@@ -176,4 +176,4 @@ def verdict_grid(data: dict) -> dict | None:
             text = v.get("cell") or v.get("status", "ok") + ("" if value is None else f" ({value:.3g})")
             cells.append({"status": v.get("status", "ok"), "text": text})
         rows.append({"direction": direction.upper(), "cells": cells})
-    return {"families": families, "rows": rows}
+    return {"families": families, "rows": rows, "gan_test_column": GAN_TEST_FAMILY in families}
