@@ -119,7 +119,7 @@ def realistic_gan_tests(classify: dict, runs: list[dict]) -> dict:
     the class the input modality's real-only classifier reads from it, as for a generator told nothing.
     A modality is left out when either confusion is missing or their classes differ."""
     found = {}
-    for target, source in (("tactile", "visual"), ("visual", "tactile")):
+    for source, target in DIRECTIONS.values():
         judge, reader = (classify.get(m, {}).get("summary") or {} for m in (target, source))
         if not judge.get("real_confusion") or not reader.get("real_confusion") or judge.get("classes") != reader.get("classes"):
             continue

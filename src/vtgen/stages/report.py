@@ -247,7 +247,7 @@ def realistic_gan_test_note(modality: str, summary: dict, oracle: dict | None) -
     gan = (summary.get("gan_test") or {}).get("final_mean")
     if not oracle or gan is None:
         return None
-    source = "visual" if modality == "tactile" else "tactile"
+    source = DIRECTIONS[direction_producing(modality)][0]
     of_class = ("its input's own class (the generator was told it)" if oracle["told_class"] else
                 f"the class the {source} real-only classifier reads from its input (a generator told nothing can "
                 f"know no more of the class than its input shows)")
