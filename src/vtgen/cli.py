@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from vtgen.core.domain import DIRECTIONS
-from vtgen.io.params import ParamsError, load_params
+from vtgen.io.params import ParamsError, load_params, with_recipe
 
 
 def _render(args, params) -> None:
@@ -271,8 +271,8 @@ def run_stage(args, params) -> None:
 
     started = time.perf_counter()
     with run_lock(f"vtgen {args.stage}"):
-        job, inputs = _declared_job(args, params)
-        args.func(args, params)
+        job, inputs = _declared_job(args, params)  # records read params.yaml as written, as DVC does
+        args.func(args, with_recipe(params))
         out = Path(args.out)
         if out.is_dir() and args.stage not in ("report", "studies-report"):  # pages: reports/ holds declared files only
             record = {"stage": args.stage, "seconds": round(time.perf_counter() - started, 2),

@@ -83,13 +83,13 @@ STAGES: tuple[Stage, ...] = (
           "--tiles data/roi/tiles.parquet --out models/{direction}/{scope}",
           # data/ingest: the md5s of the frames that class_gan.views crops again
           inputs=("data/pairs", "data/roi", "data/ingest"), outputs=("models/{direction}/{scope}",),
-          params=("translation", "presets.${translation.preset}", "roi"), threads="translation.threads",
+          params=("translation", "presets.${translation.preset}", "recipes.${translation.recipe}", "roi"), threads="translation.threads",
           doc="Train the conditional GAN of one direction for one scope entry ('all' or a class)."),
     Stage("generate", "vtgen.stages.generate",
           "vtgen generate --params params.yaml --direction {direction} --pairs data/pairs --models models/{direction} "
           "--out data/generated/{direction}",
           inputs=("data/pairs", "data/roi", "models/{direction}/{scope}"), outputs=("data/generated/{direction}",),
-          params=("generate", "translation.scope", "translation.device"),
+          params=("generate", "translation.scope", "translation.device", "recipes.${translation.recipe}"),
           doc="Translate the test split and generate.train_share of the training inputs of one direction."),
     Stage("score", "vtgen.stages.score",
           "vtgen score --params params.yaml --pairs data/pairs --generated data/generated --classify data/classify "
@@ -112,7 +112,7 @@ STAGES: tuple[Stage, ...] = (
           outputs=("reports/index.html", "reports/summary.md", "reports/figures", "reports/timings.json"),
           metrics=("reports/metrics.json",),
           plots={"reports/plots/training.csv": {"x": "step", "y": "loss_g_l1", "title": "generator L1 loss by model"}},
-          params=("dataset", "translation"), reads=("src/vtgen/io/templates",),
+          params=("dataset", "translation", "recipes.${translation.recipe}"), reads=("src/vtgen/io/templates",),
           doc="The run's report: reports/index.html, summary.md, metrics.json, plots and figures."),
     # studies: outside the main job (`snakemake studies`; for DVC, `vtgen workflow --studies` first, then
     # `dvc repro workflow/studies/dvc.yaml`)
@@ -120,7 +120,7 @@ STAGES: tuple[Stage, ...] = (
           "vtgen study --params params.yaml --kind tradeoff --name {setting} --pairs data/pairs "
           "--out data/studies/tradeoff/{setting}",
           inputs=("data/pairs", "data/roi"), outputs=("data/studies/tradeoff/{setting}",),
-          params=("studies.tradeoff", "translation", "presets.${translation.preset}", "classify"),
+          params=("studies.tradeoff", "translation", "presets.${translation.preset}", "recipes.${translation.recipe}", "classify"),
           threads="translation.threads", pipeline="studies",
           doc="Train, generate and score one trade-off setting for every studies.tradeoff seed."),
     Stage("frontier", "vtgen.studies.study",
@@ -132,11 +132,11 @@ STAGES: tuple[Stage, ...] = (
           "vtgen study --params params.yaml --kind experiments --name {name} --pairs data/pairs "
           "--capacity data/studies/frontier --out data/studies/experiments/{name}",
           inputs=("data/pairs", "data/roi", "data/studies/frontier"), outputs=("data/studies/experiments/{name}",),
-          params=("studies.experiments", "translation", "presets.${translation.preset}", "classify"),
+          params=("studies.experiments", "translation", "presets.${translation.preset}", "recipes.${translation.recipe}", "classify"),
           threads="translation.threads", pipeline="studies",
           doc="One row of the paper's experiment matrix (studies.experiments.runs)."),
     Stage("stability", "vtgen.studies.stability", "vtgen stability --params params.yaml --out data/studies/stability",
-          inputs=(), outputs=("data/studies/stability",), params=("translation", "presets.${translation.preset}"),
+          inputs=(), outputs=("data/studies/stability",), params=("translation", "presets.${translation.preset}", "recipes.${translation.recipe}"),
           pipeline="studies",
           doc="Train at the edges of the parameter space; each case ends finite or with a clear message."),
     Stage("studies_report", "vtgen.studies.report",

@@ -55,6 +55,8 @@ def validate_params(params: Any, source: str = "params.yaml") -> dict:
         problems += _translation_problems(params)
     if not problems:
         problems += _study_problems(params, validator)
+    if not problems:
+        problems += _recipe_problems(params, validator)
     if problems:
         raise ParamsError(f"{source} is invalid:\n  " + "\n  ".join(problems))
     return params
@@ -100,25 +102,87 @@ def _study_problems(params: dict, validator: jsonschema.Draft202012Validator) ->
               ("studies.tradeoff.base", studies["tradeoff"]["base"])]
     groups += [(f"studies.experiments.runs.{n}.set", r["set"]) for n, r in studies["experiments"]["runs"].items()]
     groups += [(f"studies.tradeoff.settings.{n}", o) for n, o in studies["tradeoff"]["settings"].items()]
+    return [problem for where, overrides in groups for problem in _override_problems(params, validator, where, overrides)]
+
+
+def _override_problems(params: dict, validator: jsonschema.Draft202012Validator, where: str, overrides: dict) -> list[str]:
+    """What is wrong with the dotted-key ``overrides`` found at ``where``: a key params does not have, or a value
+    the schema refuses there."""
     problems = []
-    for where, overrides in groups:
-        for key, value in overrides.items():
-            parts = resolve_key(params, key).split(".")
-            node = params
-            for part in parts[:-1]:
-                node = node.get(part) if isinstance(node, dict) else None
-            if not isinstance(node, dict) or parts[-1] not in node:
-                problems.append(f"{where}.{key}: params has no key '{'.'.join(parts)}'")
-                continue
-            trial = {**params, parts[0]: copy.deepcopy(params[parts[0]])}
-            target = trial
-            for part in parts[:-1]:
-                target = target[part]
-            target[parts[-1]] = value
-            errors = [e for e in validator.iter_errors(trial) if list(e.absolute_path)[:len(parts)] == parts]
-            problems += [f"{where}.{key}: {e.message}" for e in errors[:1]]
-            problems += [f"{where}.{key}: {v!r} is not a finite number" for _, v in _non_finite(value)]
+    for key, value in overrides.items():
+        parts = resolve_key(params, key).split(".")
+        node = params
+        for part in parts[:-1]:
+            node = node.get(part) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or parts[-1] not in node:
+            problems.append(f"{where}.{key}: params has no key '{'.'.join(parts)}'")
+            continue
+        trial = {**params, parts[0]: copy.deepcopy(params[parts[0]])}
+        target = trial
+        for part in parts[:-1]:
+            target = target[part]
+        target[parts[-1]] = value
+        errors = [e for e in validator.iter_errors(trial) if list(e.absolute_path)[:len(parts)] == parts]
+        if errors:  # the deepest reason, so a per-direction value's bad entry is named, not only its block
+            error = jsonschema.exceptions.best_match(errors)
+            inner = "".join(f".{part}" for part in list(error.absolute_path)[len(parts):])
+            problems.append(f"{where}.{key}{inner}: {error.message}")
+        problems += [f"{where}.{key}: {v!r} is not a finite number" for _, v in _non_finite(value)]
     return problems
+
+
+# What a recipe may set: the stages that read these keys (train, generate, report, the studies) also depend on
+# ``recipes.<translation.recipe>``. The keys that shape the workflow itself (which jobs exist, their threads) or
+# that other stages read are not a recipe's to change.
+RECIPE_SECTIONS = ("translation.", "generate.", "preset.")
+RECIPE_FORBIDDEN = ("translation.preset", "translation.recipe", "translation.scope", "translation.device",
+                    "translation.threads")
+
+
+def _recipe_problems(params: dict, validator: jsonschema.Draft202012Validator) -> list[str]:
+    """``translation.recipe`` must name a block of ``recipes``; each block sets existing translation, generate or
+    preset keys to values the schema accepts."""
+    recipes, chosen = params["recipes"], params["translation"]["recipe"]
+    problems = []
+    if chosen not in recipes:
+        problems.append(f"translation.recipe: '{chosen}' is not a block of recipes (defined: {', '.join(recipes)})")
+    for name, overrides in recipes.items():
+        for key in overrides:
+            if not key.startswith(RECIPE_SECTIONS):
+                problems.append(f"recipes.{name}: unknown key '{key}' (a recipe sets translation.*, generate.* or "
+                                f"preset.* keys)")
+            elif key in RECIPE_FORBIDDEN:
+                problems.append(f"recipes.{name}.{key}: set it in params.yaml itself (it decides which jobs run and "
+                                f"where, or which recipe applies)")
+        problems += _override_problems(params, validator, f"recipes.{name}", overrides)
+    return problems
+
+
+def set_keys(params: dict, overrides: dict) -> dict:
+    """A deep copy of ``params`` with each dotted key of ``overrides`` (``preset.x`` = the chosen preset's x) set
+    to its value; a key params does not have is a ValueError naming it. Not validated."""
+    merged = copy.deepcopy(params)
+    for raw_key, value in overrides.items():
+        key = resolve_key(params, raw_key)
+        node, parts = merged, key.split(".")
+        for depth, part in enumerate(parts[:-1]):
+            if not isinstance(node, dict) or part not in node:
+                raise ValueError(f"override '{raw_key}': params has no key '{'.'.join(parts[:depth + 1])}'")
+            node = node[part]
+        if not isinstance(node, dict) or parts[-1] not in node:
+            raise ValueError(f"override '{raw_key}': params has no key '{key}'")
+        node[parts[-1]] = copy.deepcopy(value)
+    return merged
+
+
+def with_recipe(params: dict) -> dict:
+    """The settings the stages run with: validated ``params`` with the block of ``recipes`` that
+    ``translation.recipe`` names applied over them (``none``: unchanged). ``translation.recipe`` keeps the name, so
+    applying it twice changes nothing."""
+    overrides = params["recipes"][params["translation"]["recipe"]]
+    if not overrides:
+        return params
+    return validate_params(set_keys(params, overrides), source=f"params.yaml with recipe '{params['translation']['recipe']}'")
 
 
 def model_settings(params: dict) -> dict:

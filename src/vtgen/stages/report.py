@@ -186,7 +186,8 @@ def run_facts(params: dict) -> dict:
         torch_version = "not installed"
     return {"code_version": code_version(), "built": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
             "python": platform.python_version(), "torch": torch_version, "cpus": os.cpu_count(),
-            "preset": params["translation"]["preset"], "scope": list(params["translation"]["scope"])}
+            "preset": params["translation"]["preset"], "recipe": params["translation"]["recipe"],
+            "scope": list(params["translation"]["scope"])}
 
 
 def collect(params: dict, inputs: ReportInputs) -> dict:

@@ -22,7 +22,6 @@ Intermediate files of a run (tiles, checkpoints, models, generated images) live 
 
 from __future__ import annotations
 
-import copy
 import hashlib
 import json
 import math
@@ -34,7 +33,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from vtgen.io.params import model_settings, resolve_key, validate_params
+from vtgen.io.params import model_settings, resolve_key, set_keys, validate_params
 from vtgen.io.provenance import code_fingerprint
 from vtgen.io.images import atomic_output_dir
 from vtgen.io.tables import read_table
@@ -54,18 +53,7 @@ def apply_overrides(params: dict, overrides: dict) -> dict:
     Only existing keys can be set (a typo is an error naming the key), and the result must pass
     the params schema.
     """
-    merged = copy.deepcopy(params)
-    for raw_key, value in overrides.items():
-        key = resolve_key(params, raw_key)
-        node, parts = merged, key.split(".")
-        for depth, part in enumerate(parts[:-1]):
-            if not isinstance(node, dict) or part not in node:
-                raise ValueError(f"override '{raw_key}': params has no key '{'.'.join(parts[:depth + 1])}'")
-            node = node[part]
-        if not isinstance(node, dict) or parts[-1] not in node:
-            raise ValueError(f"override '{raw_key}': params has no key '{key}'")
-        node[parts[-1]] = copy.deepcopy(value)
-    return validate_params(merged, source=f"params with overrides {overrides}")
+    return validate_params(set_keys(params, overrides), source=f"params with overrides {overrides}")
 
 
 def variant_overrides(params: dict, kind: str, name: str) -> dict:
