@@ -172,6 +172,7 @@ def test_run_train_writes_generator_summary_and_loss_log(tmp_path, monkeypatch):
     out = tmp_path / "models/v2t/all"
     assert {p.name for p in out.iterdir()} == {"generator.pt", "train.json", "dvclive"}
     assert summary["steps"] == 10 and summary["training_pairs"] == 6
+    assert summary["preset"] == "fast" and summary["recipe"] == "none"
     logged = pd.read_csv(out / "dvclive/plots/metrics/train/loss_g_l1.tsv", sep="\t")
     assert list(logged["step"]) == [2, 4, 5, 6, 8, 10]  # every log_every (2) steps and at each checkpoint (5)
     assert (tmp_path / "ckpt/v2t/all/last.pt").is_file()

@@ -1097,7 +1097,7 @@ def _summary(result: TrainResult, data: PairData, validation: PairData | None, s
     reader = {} if conditioning.kind != "inferred" else {
         "input_reader": (conditioning.classifier_settings or {}).get("reader", "network")}
     return {
-        "direction": direction, "scope": scope, "preset": run["preset"], "settings": settings, **reader,
+        "direction": direction, "scope": scope, "preset": run["preset"], "recipe": run["recipe"], "settings": settings, **reader,
         "conditioning": conditioning.kind, "classes": list(conditioning.classes),
         "precision": result.precision, "precision_setting": run["precision"],
         "precision_reason": result.precision_reason, "device": result.device, "threads": run["threads"], "seed": run["seed"],
@@ -1152,7 +1152,7 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
     guide = build_guide(settings, data, params["classify"], run["seed"])
     referee = build_referee(settings, data, validation, params["classify"], run["seed"])
     print(f"train {direction}/{scope}: {len(data.targets)} training pairs ({int(data.aligned.sum())} aligned), "
-          f"preset '{run['preset']}' at {settings['size']} px, {settings['iterations']} iterations of batch "
+          f"preset '{run['preset']}' (recipe '{run['recipe']}') at {settings['size']} px, {settings['iterations']} iterations of batch "
           f"{settings['batch_size']}, precision {run['precision']}, conditioning {conditioning.kind}, "
           f"objective {objective} ({objective_reason}){output_note}")
     with atomic_output_dir(out_dir) as tmp:
