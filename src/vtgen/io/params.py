@@ -147,14 +147,17 @@ def _recipe_problems(params: dict, validator: jsonschema.Draft202012Validator) -
     if chosen not in recipes:
         problems.append(f"translation.recipe: '{chosen}' is not a block of recipes (defined: {', '.join(recipes)})")
     for name, overrides in recipes.items():
-        for key in overrides:
+        allowed = {}
+        for key, value in overrides.items():
             if not key.startswith(RECIPE_SECTIONS):
                 problems.append(f"recipes.{name}: unknown key '{key}' (a recipe sets translation.*, generate.* or "
                                 f"preset.* keys)")
             elif key in RECIPE_FORBIDDEN:
                 problems.append(f"recipes.{name}.{key}: set it in params.yaml itself (it decides which jobs run and "
                                 f"where, or which recipe applies)")
-        problems += _override_problems(params, validator, f"recipes.{name}", overrides)
+            else:
+                allowed[key] = value
+        problems += _override_problems(params, validator, f"recipes.{name}", allowed)
     return problems
 
 
