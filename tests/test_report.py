@@ -457,6 +457,7 @@ def test_first_screen_answers_whether_generated_data_helps_before_the_long_lines
     assert '<td class="unresolved">unresolved (0.5 of 0.625)</td>' in grid
     assert "The last column sets the GAN-test" in summary and "The last column sets the GAN-test" in page
     assert '<td class="not-scored">—</td>' in grid and "td.warning{background:#f8d7da" in page
+    assert "Next step" not in summary + page  # trained on pixel pairs, GAN-test within the noise: no recipe advice
 
 
 @pytest.mark.slow
@@ -804,3 +805,23 @@ def test_the_grid_has_the_gan_test_column_and_says_so_only_where_there_is_a_real
         "final_mean": 0.06, "interval": [0.03, 0.12]}}}}, "realistic_gan_test": {"tactile": {"value": 0.16}}})
     assert with_oracle["families"][-1] == GAN_TEST_FAMILY and with_oracle["gan_test_column"]
     assert with_oracle["rows"][0]["cells"][-1] == {"status": "warning", "text": "warning (0.06 of 0.16)"}
+
+
+def test_the_report_points_to_the_recipes_only_where_class_pairs_fall_short_without_one():
+    """recipe_advice names the directions whose GAN-test is below the realistic one beyond the noise, when every
+    training pair is a class pair and no recipe was used; the page then carries a next-step line."""
+    from vtgen.io.report_pages import environment
+    from vtgen.io.report_verdicts import recipe_advice
+
+    def data(recipe="none", kinds=None, gan=(0.06, [0.03, 0.12])):
+        return {"run": {"recipe": recipe},
+                "pair_kinds": {"v2t": {"train": kinds or {"class": 120}, "test": {"class": 120}}},
+                "classify": {"tactile": {"summary": {"gan_test": {"final_mean": gan[0], "interval": gan[1]}}}},
+                "realistic_gan_test": {"tactile": {"value": 0.162}}}
+
+    assert recipe_advice(data()) == ["V2T"]  # the vt60 default's V2T: 0.06 [0.03, 0.12] of 0.162
+    assert recipe_advice(data(recipe="object")) == []  # a recipe was used: nothing to point to
+    assert recipe_advice(data(kinds={"class": 60, "pixel": 60})) == []  # aligned pairs train pix2pix
+    assert recipe_advice(data(gan=(0.15, [0.09, 0.23]))) == []  # within the noise of the realistic level
+    line = environment().get_template("report_text.txt").module.recipe_advice(["V2T", "T2V"])
+    assert line.startswith("Next step: V2T and T2V fall short") and "translation.recipe=object" in line

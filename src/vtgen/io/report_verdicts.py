@@ -152,6 +152,17 @@ def gan_test_verdicts(data: dict) -> list[dict]:
     return found
 
 
+def recipe_advice(data: dict) -> list[str]:
+    """The directions (upper case) whose GAN-test falls below the realistic one beyond the noise
+    (:func:`gan_test_verdicts`: warning) although every training pair is a class pair and the run used no
+    recipe: there the report points to params.yaml's ``recipes``, measured on such data. Empty otherwise."""
+    if (data.get("run") or {}).get("recipe", "none") != "none":
+        return []
+    kinds = data.get("pair_kinds") or {}
+    return [v["direction"].upper() for v in gan_test_verdicts(data)
+            if v["status"] == "warning" and set((kinds.get(v["direction"]) or {}).get("train") or {}) == {"class"}]
+
+
 def verdict_grid(data: dict) -> dict | None:
     """The score stage's verdicts as one direction x family grid: ``{"families", "rows": [{"direction",
     "cells": [{"status", "text"}]}], "gan_test_column"}``, each cell the status (VERDICT_COLOURS) and a short value, and a last

@@ -51,7 +51,7 @@ from vtgen.io.report_tables import (
     accuracy_table, capacity_view, comparison_table, distribution_table, final_accuracy_table, memorisation_table,
     models_table, paper_table, SETTING_ORDER, ssim_name, ssim_tables,
 )
-from vtgen.io.report_verdicts import not_scored, policy_rows, verdict_grid, verdict_lines
+from vtgen.io.report_verdicts import not_scored, policy_rows, recipe_advice, verdict_grid, verdict_lines
 from vtgen.io.tables import PAIR_KINDS, QUARANTINE_COLUMNS, read_table
 
 BY_CLASS_KEYS = ["direction", "scope", "candidate", "class"]
@@ -341,7 +341,7 @@ def page_context(data: dict, figures: dict[str, bool], params: dict | None = Non
     return {
         **{k: data[k] for k in ("title", "synthetic", "dataset", "ingest", "pairs", "run", "params_yaml")},
         "directions": list(DIRECTIONS), "figures": figures, "verdicts": verdict_lines(data),
-        "policy": policy_rows(data), "verdict_grid": verdict_grid(data),
+        "policy": policy_rows(data), "verdict_grid": verdict_grid(data), "recipe_advice": recipe_advice(data),
         "not_scored": skipped, "pair_kinds": data["pair_kinds"], "duplicates": duplicate_counts(data["ingest"]),
         "modalities": modalities_present(data["ingest"]),
         "test_per_class": {m: e["summary"].get("test_images_per_class") for m, e in data["classify"].items()
