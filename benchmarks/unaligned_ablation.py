@@ -26,7 +26,9 @@ here on the real training images of the run with the classify stage's settings):
         --variant pix2pix:objective=pix2pix --variant class_gan:objective=class_gan
 
 A variant is ``name:key=value;key=value``; keys are ``translation`` keys (objective, conditioning as one kind
-for this direction), ``class_gan.<key>`` or preset keys. SYNTHETIC results must be labelled as such.
+for this direction), ``class_gan.<key>`` or preset keys, set over the run folder's params.yaml with its recipe
+(``translation.recipe``) applied, except the recipe's step count: ``--iterations`` sets it. SYNTHETIC results
+must be labelled as such.
 ``--truncation 1 0.5 0`` measures each trained generator once per psi its latent codes are scaled by
 (``translate``'s truncation); ``--model <run>/models/v2t/all`` measures a main job's trained generator instead
 of training one.
@@ -50,7 +52,7 @@ from vtgen.core.domain import DIRECTIONS
 from vtgen.core.referee import at_side as resized  # area-resized uint8 tiles at the classifier's side
 from vtgen.io.checkpoints import load_translator
 from vtgen.io.images import labelled_sheet, read_tiles, write_png
-from vtgen.io.params import model_settings, validate_params
+from vtgen.io.params import model_settings, validate_params, with_recipe
 from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
 from vtgen.stages.generate import translate
 from vtgen.stages.train import (build_conditioning, build_guide, build_referee, load_pair_data, objective_settings,
@@ -88,7 +90,7 @@ def run_variant(params, pairs, splits, direction, overrides, seed, iterations, t
     """Train one variant at one seed; one result per truncation psi of the test translations' latent codes."""
     settings = dict(model_settings(params), iterations=iterations)
     run = dict(params["translation"], seed=seed, threads=threads, checkpoint_every=10**9, resume=False)
-    run["class_gan"] = dict(run["class_gan"])
+    run["class_gan"] = dict(run["class_gan"], iterations=None)  # --iterations rules, also over a recipe's
     for key, value in overrides.items():
         if key.startswith("class_gan."):
             run["class_gan"][key.split(".", 1)[1]] = value
@@ -250,13 +252,15 @@ def main() -> None:
     if not args.variant and not args.model:
         parser.error("give --variant (train and measure) or --model (measure a trained model)")
     root = Path(args.run).resolve()
-    params = validate_params(yaml.safe_load((root / "params.yaml").read_text()))
+    params = with_recipe(validate_params(yaml.safe_load((root / "params.yaml").read_text())))
     torch.set_num_threads(args.threads)
     pairs = read_table(root / "data" / "pairs" / f"{args.direction}.parquet", PAIR_COLUMNS, "pairs")
     splits = read_table(root / "data" / "pairs" / "splits.parquet", SPLIT_COLUMNS, "splits")
     context = prepare_context(params, pairs, splits, args.direction, root)
     (acc, n), (in_acc, in_n) = context["real_accuracy"], context["input_accuracy"]
-    print(f"# {root} {args.direction}, {args.iterations} iterations; real-only accuracy: target {acc:.3f} (n = {n}), "
+    recipe = params["translation"]["recipe"]
+    print(f"# {root} {args.direction}, {args.iterations} iterations"
+          f"{'' if recipe == 'none' else f' (the run folder's recipe {recipe!r} applied, its iterations replaced)'}; real-only accuracy: target {acc:.3f} (n = {n}), "
           f"input {in_acc:.3f} (n = {in_n}); GAN-test goal >= {0.8 * min(acc, in_acc):.3f}", flush=True)
     header = ("| variant | seed | n | diversity pixels [95%] | diversity features [95%] | recall / coverage | FID | "
               "KID ± 95% | GAN-test [95%] | GAN-test, blurred | memorisation | edge outliers | train s |\n"
