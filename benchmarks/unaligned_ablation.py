@@ -259,8 +259,8 @@ def main() -> None:
     context = prepare_context(params, pairs, splits, args.direction, root)
     (acc, n), (in_acc, in_n) = context["real_accuracy"], context["input_accuracy"]
     recipe = params["translation"]["recipe"]
-    print(f"# {root} {args.direction}, {args.iterations} iterations"
-          f"{'' if recipe == 'none' else f' (the run folder's recipe {recipe!r} applied, its iterations replaced)'}; real-only accuracy: target {acc:.3f} (n = {n}), "
+    applied = "" if recipe == "none" else f" (the run folder's recipe {recipe!r} applied, its iterations replaced)"
+    print(f"# {root} {args.direction}, {args.iterations} iterations{applied}; real-only accuracy: target {acc:.3f} (n = {n}), "
           f"input {in_acc:.3f} (n = {in_n}); GAN-test goal >= {0.8 * min(acc, in_acc):.3f}", flush=True)
     header = ("| variant | seed | n | diversity pixels [95%] | diversity features [95%] | recall / coverage | FID | "
               "KID ± 95% | GAN-test [95%] | GAN-test, blurred | memorisation | edge outliers | train s |\n"
