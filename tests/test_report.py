@@ -809,7 +809,7 @@ def test_the_grid_has_the_gan_test_column_and_says_so_only_where_there_is_a_real
 
 def test_the_report_points_to_the_recipes_only_where_class_pairs_fall_short_without_one():
     """recipe_advice names the directions whose GAN-test is below the realistic one beyond the noise, when every
-    training pair is a class pair and no recipe was used; the page then carries a next-step line."""
+    training pair is a class pair and no recipe was used; the text macro words the next-step line the page shows."""
     from vtgen.io.report_pages import environment
     from vtgen.io.report_verdicts import recipe_advice
 
