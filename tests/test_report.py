@@ -823,5 +823,10 @@ def test_the_report_points_to_the_recipes_only_where_class_pairs_fall_short_with
     assert recipe_advice(data(recipe="object")) == []  # a recipe was used: nothing to point to
     assert recipe_advice(data(kinds={"class": 60, "pixel": 60})) == []  # aligned pairs train pix2pix
     assert recipe_advice(data(gan=(0.15, [0.09, 0.23]))) == []  # within the noise of the realistic level
+    both = data()
+    both["pair_kinds"]["t2v"] = both["pair_kinds"]["v2t"]
+    both["classify"]["visual"] = both["classify"]["tactile"]
+    both["realistic_gan_test"]["visual"] = {"value": 0.9}
+    assert recipe_advice(both) == ["V2T", "T2V"]  # the grid's order, not the modalities'
     line = environment().get_template("report_text.txt").module.recipe_advice(["V2T", "T2V"])
     assert line.startswith("Next step: V2T and T2V fall short") and "translation.recipe=fabric, or =object" in line

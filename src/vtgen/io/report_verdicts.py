@@ -159,8 +159,9 @@ def recipe_advice(data: dict) -> list[str]:
     if (data.get("run") or {}).get("recipe", "none") != "none":
         return []
     kinds = data.get("pair_kinds") or {}
-    return [v["direction"].upper() for v in gan_test_verdicts(data)
-            if v["status"] == "warning" and set((kinds.get(v["direction"]) or {}).get("train") or {}) == {"class"}]
+    short = {v["direction"] for v in gan_test_verdicts(data)
+             if v["status"] == "warning" and set((kinds.get(v["direction"]) or {}).get("train") or {}) == {"class"}}
+    return [d.upper() for d in DIRECTIONS if d in short]  # the grid's order
 
 
 def verdict_grid(data: dict) -> dict | None:
