@@ -808,23 +808,23 @@ def test_the_grid_has_the_gan_test_column_and_says_so_only_where_there_is_a_real
 
 
 def test_the_report_points_to_the_recipes_only_where_class_pairs_fall_short_without_one():
-    """recipe_advice names the directions whose GAN-test is below the realistic one beyond the noise, when every
-    training pair is a class pair and no recipe was used; the text macro words the next-step line the page shows."""
+    """recipe_advice names the directions whose GAN-test is below the realistic one beyond the noise, when their
+    model trained the class-pair objective with no recipe (train.json); the text macro words the next-step line
+    the page shows."""
     from vtgen.io.report_pages import environment
     from vtgen.io.report_verdicts import recipe_advice
 
-    def data(recipe="none", kinds=None, gan=(0.06, [0.03, 0.12])):
-        return {"run": {"recipe": recipe},
-                "pair_kinds": {"v2t": {"train": kinds or {"class": 120}, "test": {"class": 120}}},
+    def data(recipe="none", objective="class_gan", gan=(0.06, [0.03, 0.12])):
+        return {"models": [{"direction": "v2t", "recipe": recipe, "objective": {"name": objective}}],
                 "classify": {"tactile": {"summary": {"gan_test": {"final_mean": gan[0], "interval": gan[1]}}}},
                 "realistic_gan_test": {"tactile": {"value": 0.162}}}
 
     assert recipe_advice(data()) == ["V2T"]  # the vt60 default's V2T: 0.06 [0.03, 0.12] of 0.162
     assert recipe_advice(data(recipe="object")) == []  # a recipe was used: nothing to point to
-    assert recipe_advice(data(kinds={"class": 60, "pixel": 60})) == []  # aligned pairs train pix2pix
+    assert recipe_advice(data(objective="pix2pix")) == []  # aligned pairs train pix2pix
     assert recipe_advice(data(gan=(0.15, [0.09, 0.23]))) == []  # within the noise of the realistic level
     both = data()
-    both["pair_kinds"]["t2v"] = both["pair_kinds"]["v2t"]
+    both["models"].append(dict(both["models"][0], direction="t2v"))
     both["classify"]["visual"] = both["classify"]["tactile"]
     both["realistic_gan_test"]["visual"] = {"value": 0.9}
     assert recipe_advice(both) == ["V2T", "T2V"]  # the grid's order, not the modalities'

@@ -153,15 +153,14 @@ def gan_test_verdicts(data: dict) -> list[dict]:
 
 
 def recipe_advice(data: dict) -> list[str]:
-    """The directions (upper case) whose GAN-test falls below the realistic one beyond the noise
-    (:func:`gan_test_verdicts`: warning) although every training pair is a class pair and the run used no
-    recipe: there the report points to params.yaml's ``recipes``, measured on such data. Empty otherwise."""
-    if (data.get("run") or {}).get("recipe", "none") != "none":
-        return []
-    kinds = data.get("pair_kinds") or {}
-    short = {v["direction"] for v in gan_test_verdicts(data)
-             if v["status"] == "warning" and set((kinds.get(v["direction"]) or {}).get("train") or {}) == {"class"}}
-    return [d.upper() for d in DIRECTIONS if d in short]  # the grid's order
+    """The directions (upper case, the grid's order) whose GAN-test falls below the realistic one beyond the
+    noise (:func:`gan_test_verdicts`: warning) where a model trained the class-pair objective with no recipe
+    (train.json's ``objective`` class_gan, ``recipe`` none): there the report points to params.yaml's
+    ``recipes``, measured on such data. Empty otherwise."""
+    plain = {run["direction"] for run in data.get("models") or []
+             if (run.get("objective") or {}).get("name") == "class_gan" and run.get("recipe", "none") == "none"}
+    short = {v["direction"] for v in gan_test_verdicts(data) if v["status"] == "warning"}
+    return [d.upper() for d in DIRECTIONS if d in short & plain]
 
 
 def verdict_grid(data: dict) -> dict | None:
