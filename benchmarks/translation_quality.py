@@ -37,7 +37,7 @@ from vtgen.io.params import model_settings, validate_params
 from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
 from vtgen.stages.generate import translate
 from vtgen.stages.score import reference_candidates
-from vtgen.stages.train import build_conditioning, load_pair_data, train_translator
+from vtgen.stages.train import build_conditioning, load_pair_data, resolve_conditioning, train_translator
 
 
 def parse_variant(text: str) -> tuple[str, dict]:
@@ -59,7 +59,7 @@ def run_variant(params: dict, pairs, splits, direction: str, overrides: dict, se
     train = load_pair_data(pairs, splits, direction, "all", size, root)
     test = load_pair_data(pairs, splits, direction, "all", size, root, split="test")
     kind = run["conditioning"][direction] if isinstance(run["conditioning"], dict) else run["conditioning"]
-    conditioning = build_conditioning(kind, pairs, "all", train)
+    conditioning = build_conditioning(resolve_conditioning(kind, "pix2pix", len(set(train.classes))), pairs, "all", train)  # trains pix2pix
     started = time.perf_counter()
     result = train_translator(train, settings, run, direction, "all", progress=False, conditioning=conditioning)
     seconds = time.perf_counter() - started

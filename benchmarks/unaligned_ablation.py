@@ -56,7 +56,7 @@ from vtgen.io.params import model_settings, validate_params, with_recipe
 from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
 from vtgen.stages.generate import translate
 from vtgen.stages.train import (build_conditioning, build_guide, build_referee, load_pair_data, objective_settings,
-                                output_settings, pairs_in, resolve_objective, train_translator, with_frame_views)
+                                output_settings, pairs_in, resolve_conditioning, resolve_objective, train_translator, with_frame_views)
 from translation_quality import parse_variant  # the same name:key=value;... variants (benchmarks/ is on sys.path)
 
 def real_classifier(splits, modality: str, params: dict, root: Path, classes: list[str], seed: int = 0):
@@ -109,8 +109,9 @@ def run_variant(params, pairs, splits, direction, overrides, seed, iterations, t
     settings, _ = output_settings(settings, run, train.targets)
     train = with_frame_views(train, pairs, splits, direction, "all", settings.get("views", 1),
                              Path("data/roi/tiles.parquet"), params["roi"], size, seed, root)
-    conditioning = build_conditioning(run["conditioning"][direction], pairs, "all", train, params["classify"], seed,
-                                      run.get("inferred_epochs"), run.get("inferred_reader", "network"))
+    kind = resolve_conditioning(run["conditioning"][direction], objective, len(set(train.classes)))
+    conditioning = build_conditioning(kind, pairs, "all", train, params["classify"], seed, run.get("inferred_epochs"),
+                                      run.get("inferred_reader", "network"))
     started = time.perf_counter()
     guide = build_guide(settings, train, params["classify"], seed)
     referee = build_referee(settings, train, validation, params["classify"], seed)  # class_gan.select_every's judge

@@ -275,7 +275,8 @@ def test_class_gan_iterations_replace_the_presets_per_direction(default_params):
 
     from vtgen.io.params import ParamsError, validate_params
     params = copy.deepcopy(default_params)
-    assert params["translation"]["class_gan"]["iterations"] is None
+    assert params["translation"]["class_gan"]["iterations"] == {"v2t": 6000, "t2v": None}  # V2T needs the length
+    params["translation"]["class_gan"]["iterations"] = None
     plain = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")
     assert plain["iterations"] == SETTINGS["iterations"]
     params["translation"]["class_gan"]["iterations"] = None
@@ -304,6 +305,15 @@ def test_auto_picks_the_objective_from_the_pair_kind():
     assert objective_settings(SETTINGS, translation, "class_gan") == dict(SETTINGS, **CLASS_GAN)
     with pytest.raises(ValueError, match="presets.fast.batch_size"):
         objective_settings(dict(SETTINGS, batch_size=3), translation, "class_gan")
+
+
+def test_auto_conditioning_reads_the_class_only_where_class_pairs_train_several_classes():
+    from vtgen.stages.train import resolve_conditioning
+    assert resolve_conditioning("auto", "class_gan", 10) == "inferred"  # pixel-free: told what the photo reads as
+    assert resolve_conditioning("auto", "pix2pix", 10) == "none"  # the partner image ties output to input
+    assert resolve_conditioning("auto", "class_gan", 1) == "none"  # one class: nothing to read
+    assert resolve_conditioning("class", "pix2pix", 10) == "class"  # a set kind is taken as set
+    assert resolve_conditioning("none", "class_gan", 10) == "none"
 
 
 def test_class_batches_pair_rows_of_one_class():

@@ -29,7 +29,7 @@ def test_none_is_params_as_written(default_params):
     assert with_recipe(default_params) is default_params
 
 
-@pytest.mark.parametrize("recipe", ["fabric", "object"])
+@pytest.mark.parametrize("recipe", ["fabric", "quick"])
 def test_a_recipe_sets_each_of_its_keys_and_nothing_else(default_params, recipe):
     raw = choose(default_params, recipe)
     before = copy.deepcopy(raw)
@@ -51,20 +51,31 @@ def test_a_recipe_sets_each_of_its_keys_and_nothing_else(default_params, recipe)
     assert undone == raw
 
 
-def test_the_object_recipe_changes_what_v2t_trains_with(default_params):
-    applied = with_recipe(choose(default_params, "object"))
-    assert applied["translation"]["conditioning"] == {"v2t": "inferred", "t2v": "class"}
-    assert applied["translation"]["inferred_reader"] == "features"
-    assert applied["translation"]["class_gan"]["iterations"] == {"v2t": 6000, "t2v": 1500}
+def test_the_quick_recipe_restores_the_short_class_pair_settings(default_params):
+    """By default a class-pair V2T reads the photo's class with the features and trains 6,000 steps with a
+    teaching discriminator (R1 1); `quick` gives the earlier, shorter settings back. T2V is left as it is."""
+    translation = default_params["translation"]
+    assert translation["conditioning"] == {"v2t": "auto", "t2v": "class"}
+    assert translation["inferred_reader"] == "features"
+    assert translation["class_gan"]["r1"] == {"v2t": 1, "t2v": 240}
+    assert translation["class_gan"]["iterations"] == {"v2t": 6000, "t2v": None}
+    quick = with_recipe(choose(default_params, "quick"))["translation"]
+    assert quick["conditioning"] == {"v2t": "none", "t2v": "class"}
+    assert quick["class_gan"]["r1"] == 240 and quick["class_gan"]["iterations"] is None
+
+
+def test_the_fabric_recipe_keeps_the_reader_it_was_measured_with(default_params):
+    applied = with_recipe(choose(default_params, "fabric"))["translation"]
+    assert applied["inferred_reader"] == "network" and applied["conditioning"] == {"v2t": "inferred", "t2v": "inferred"}
 
 
 @pytest.mark.parametrize("edit, message", [
     (lambda p: p["translation"].update(recipe="fabrik"), r"translation\.recipe: 'fabrik' is not a block of recipes"),
-    (lambda p: p["recipes"]["object"].update({"classify.epochs": 3}), r"recipes\.object: unknown key 'classify\.epochs'"),
-    (lambda p: p["recipes"]["object"].update({"translation.scope": ["denim"]}),
-     r"recipes\.object\.translation\.scope: set it in params\.yaml itself"),
-    (lambda p: p["recipes"]["object"].update({"translation.class_gan.r2": 1}),
-     r"recipes\.object\.translation\.class_gan\.r2: params has no key"),
+    (lambda p: p["recipes"]["quick"].update({"classify.epochs": 3}), r"recipes\.quick: unknown key 'classify\.epochs'"),
+    (lambda p: p["recipes"]["quick"].update({"translation.scope": ["denim"]}),
+     r"recipes\.quick\.translation\.scope: set it in params\.yaml itself"),
+    (lambda p: p["recipes"]["quick"].update({"translation.class_gan.r2": 1}),
+     r"recipes\.quick\.translation\.class_gan\.r2: params has no key"),
     (lambda p: p["recipes"]["fabric"].update({"translation.class_gan.select_every": {"v2t": "often", "t2v": 1}}),
      r"recipes\.fabric\.translation\.class_gan\.select_every\.v2t: 'often' is not of type 'integer'"),
     (lambda p: p["recipes"]["none"].update({"generate.seed": 1}), r"recipes\.none: .* is expected to be empty"),
@@ -79,9 +90,9 @@ def test_a_bad_recipe_is_refused_naming_the_key(default_params, edit, message):
 def test_stages_that_read_translation_depend_on_the_chosen_recipe_only(default_params):
     """Editing the chosen recipe changes the params record of train, generate and report; editing another recipe
     changes no stage's record (so it reruns nothing)."""
-    chosen = choose(default_params, "object")
+    chosen = choose(default_params, "quick")
     edited_chosen = copy.deepcopy(chosen)
-    edited_chosen["recipes"]["object"]["translation.class_gan.r1"] = {"v2t": 2, "t2v": 240}
+    edited_chosen["recipes"]["quick"]["translation.class_gan.r1"] = {"v2t": 2, "t2v": 240}
     edited_other = copy.deepcopy(chosen)
     edited_other["recipes"]["fabric"]["translation.class_gan.ema"] = 0.99
     changed = {s.name for s in STAGES if params_text(s, chosen) != params_text(s, edited_chosen)}

@@ -807,9 +807,9 @@ def test_the_grid_has_the_gan_test_column_and_says_so_only_where_there_is_a_real
     assert with_oracle["rows"][0]["cells"][-1] == {"status": "warning", "text": "warning (0.06 of 0.16)"}
 
 
-def test_the_report_points_to_the_recipes_only_where_class_pairs_fall_short_without_one():
+def test_the_report_points_to_the_long_recipe_only_where_class_pairs_fall_short_without_it():
     """recipe_advice names the directions whose GAN-test is below the realistic one beyond the noise, when their
-    model trained the class-pair objective with no recipe (train.json); the text macro words the next-step line
+    model trained the class-pair objective by default or with the quick recipe (train.json); the text macro words the next-step line
     the page shows."""
     from vtgen.io.report_pages import environment
     from vtgen.io.report_verdicts import recipe_advice
@@ -819,8 +819,9 @@ def test_the_report_points_to_the_recipes_only_where_class_pairs_fall_short_with
                 "classify": {"tactile": {"summary": {"gan_test": {"final_mean": gan[0], "interval": gan[1]}}}},
                 "realistic_gan_test": {"tactile": {"value": 0.162}}}
 
-    assert recipe_advice(data()) == ["V2T"]  # the vt60 default's V2T: 0.06 [0.03, 0.12] of 0.162
-    assert recipe_advice(data(recipe="object")) == []  # a recipe was used: nothing to point to
+    assert recipe_advice(data()) == ["V2T"]  # the vt60 quick recipe's V2T: 0.06 [0.03, 0.12] of 0.162
+    assert recipe_advice(data(recipe="quick")) == ["V2T"]  # the short recipe: the longer one is the next step
+    assert recipe_advice(data(recipe="fabric")) == []  # the long recipe was used: nothing to point to
     assert recipe_advice(data(objective="pix2pix")) == []  # aligned pairs train pix2pix
     assert recipe_advice(data(gan=(0.15, [0.09, 0.23]))) == []  # within the noise of the realistic level
     both = data()
@@ -829,4 +830,4 @@ def test_the_report_points_to_the_recipes_only_where_class_pairs_fall_short_with
     both["realistic_gan_test"]["visual"] = {"value": 0.9}
     assert recipe_advice(both) == ["V2T", "T2V"]  # the grid's order, not the modalities'
     line = environment().get_template("report_text.txt").module.recipe_advice(["V2T", "T2V"])
-    assert line.startswith("Next step: V2T and T2V fall short") and "translation.recipe=fabric, or =object" in line
+    assert line.startswith("Next step: V2T and T2V fall short") and "dvc exp run -S translation.recipe=fabric" in line

@@ -154,11 +154,11 @@ def gan_test_verdicts(data: dict) -> list[dict]:
 
 def recipe_advice(data: dict) -> list[str]:
     """The directions (upper case, the grid's order) whose GAN-test falls below the realistic one beyond the
-    noise (:func:`gan_test_verdicts`: warning) where a model trained the class-pair objective with no recipe
-    (train.json's ``objective`` class_gan, ``recipe`` none): there the report points to params.yaml's
-    ``recipes``, measured on such data. Empty otherwise."""
+    noise (:func:`gan_test_verdicts`: warning) where a model trained the class-pair objective with the default
+    settings or the quick recipe (train.json's ``objective`` class_gan, ``recipe`` none or quick): there the report
+    points to params.yaml's longer fabric recipe. Empty otherwise."""
     plain = {run["direction"] for run in data.get("models") or []
-             if (run.get("objective") or {}).get("name") == "class_gan" and run.get("recipe", "none") == "none"}
+             if (run.get("objective") or {}).get("name") == "class_gan" and run.get("recipe", "none") in ("none", "quick")}
     short = {v["direction"] for v in gan_test_verdicts(data) if v["status"] == "warning"}
     return [d.upper() for d in DIRECTIONS if d in short & plain]
 

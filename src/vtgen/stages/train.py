@@ -282,6 +282,16 @@ def resolve_objective(setting: str, data: PairData) -> tuple[str, str]:
                          f"output to its class mean")
 
 
+def resolve_conditioning(setting: str, objective: str, classes: int) -> str:
+    """The conditioning kind one model of ``classes`` classes trains with: ``translation.conditioning``'s value for
+    its direction, where ``auto`` is ``inferred`` under the class-pair objective (the generator is told the class a
+    reader reads from its input, never the input's own class: pixel-free training has nothing else to tie an output
+    to its input's class) and ``none`` under pix2pix, whose partner image already does that, or for one class."""
+    if setting != "auto":
+        return setting
+    return "inferred" if objective == "class_gan" and classes > 1 else "none"
+
+
 def objective_settings(settings: dict, translation: dict, objective: str, direction: str | None = None) -> dict:
     """The preset block with the class_gan keys of ``translation.class_gan`` added when that objective
     trains (the pix2pix settings stay exactly the preset's); a key given per direction ({v2t: w, t2v: w}, as
@@ -1098,7 +1108,8 @@ def _summary(result: TrainResult, data: PairData, validation: PairData | None, s
         "input_reader": (conditioning.classifier_settings or {}).get("reader", "network")}
     return {
         "direction": direction, "scope": scope, "preset": run["preset"], "recipe": run["recipe"], "settings": settings, **reader,
-        "conditioning": conditioning.kind, "classes": list(conditioning.classes),
+        "conditioning": conditioning.kind, "conditioning_setting": run["conditioning"][direction],
+        "classes": list(conditioning.classes),
         "precision": result.precision, "precision_setting": run["precision"],
         "precision_reason": result.precision_reason, "device": result.device, "threads": run["threads"], "seed": run["seed"],
         "training_pairs": len(data.targets), "aligned_pairs": int(data.aligned.sum()),
@@ -1134,11 +1145,13 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
     data = load_pair_data(pairs, splits, direction, scope, settings["size"])
     validation = (load_pair_data(pairs, splits, direction, scope, settings["size"], split="val")
                   if not pairs_in(pairs, "val", scope).empty else None)
-    conditioning = build_conditioning(run["conditioning"][direction], pairs, scope, data, params["classify"], run["seed"],
-                                      run["inferred_epochs"], run["inferred_reader"])
     settings = check_training_fits(settings, len(data.targets), f"presets.{run['preset']}", f"train {direction}/{scope}",
                                    resolve_device(run["device"]).type)
     objective, objective_reason = resolve_objective(run["objective"], data)
+    conditioning_kind = resolve_conditioning(run["conditioning"][direction], objective,
+                                             pairs_in(pairs, "train", scope)["class"].nunique())
+    conditioning = build_conditioning(conditioning_kind, pairs, scope, data, params["classify"], run["seed"],
+                                      run["inferred_epochs"], run["inferred_reader"])
     settings = objective_settings(settings, run, objective, direction)
     settings, output_note = output_settings(settings, run, data.targets)
     frames = len(data.targets)
