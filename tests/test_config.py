@@ -34,6 +34,21 @@ def test_wrong_type_is_named(default_params):
         validate_params(params)
 
 
+@pytest.mark.parametrize("edit, message", [
+    (lambda r1: r1.update(v2t="twelve"), r"translation\.class_gan\.r1\.v2t: 'twelve' is not of type 'number'"),
+    (lambda r1: r1.pop("v2t"), r"translation\.class_gan\.r1: 'v2t' is a required property"),
+    (lambda r1: r1.update(v2x=1), r"translation\.class_gan\.r1: unknown key 'v2x'"),
+])
+def test_a_value_given_per_direction_is_refused_naming_the_direction(default_params, edit, message):
+    """A key that takes one value or {v2t: x, t2v: x}: the message names the direction at fault, not only that
+    the mapping fits none of the forms."""
+    params = copy.deepcopy(default_params)
+    params["translation"]["class_gan"]["r1"] = {"v2t": 1, "t2v": 240}
+    edit(params["translation"]["class_gan"]["r1"])
+    with pytest.raises(ParamsError, match=message):
+        validate_params(params)
+
+
 def test_missing_key_is_named(default_params):
     params = copy.deepcopy(default_params)
     del params["pairing"]["seed"]

@@ -35,7 +35,8 @@ def validate_params(params: Any, source: str = "params.yaml") -> dict:
     schema = yaml.safe_load(SCHEMA_PATH.read_text())
     validator = jsonschema.Draft202012Validator(schema)
     problems = []
-    for error in sorted(validator.iter_errors(params), key=lambda e: list(e.absolute_path)):
+    errors = [leaf for error in validator.iter_errors(params) for leaf in _mapping_errors(error)]
+    for error in sorted(errors, key=lambda e: [str(part) for part in e.absolute_path]):
         if error.validator == "additionalProperties":
             known = set(error.schema.get("properties", {}))
             for key in sorted(set(error.instance) - known):
@@ -60,6 +61,16 @@ def validate_params(params: Any, source: str = "params.yaml") -> dict:
     if problems:
         raise ParamsError(f"{source} is invalid:\n  " + "\n  ".join(problems))
     return params
+
+
+def _mapping_errors(error: jsonschema.ValidationError) -> list[jsonschema.ValidationError]:
+    """``error``, or where a value that may be given per direction (one of several forms, e.g. a number or
+    ``{v2t: w, t2v: w}``) is a mapping the mapping's own form refuses, that form's errors: they name the key at
+    fault (``translation.class_gan.r1.v2t: 'twelve' is not of type 'number'``) where the whole error would not."""
+    if error.validator not in ("oneOf", "anyOf") or not isinstance(error.instance, dict):
+        return [error]
+    inner = [e for e in error.context if e.relative_path or e.validator in ("required", "additionalProperties")]
+    return [leaf for e in inner for leaf in _mapping_errors(e)] or [error]
 
 
 def _non_finite(value: Any, key: str = "") -> list[tuple[str, float]]:
