@@ -314,6 +314,10 @@ def test_auto_conditioning_reads_the_class_only_where_class_pairs_train_several_
     assert resolve_conditioning("auto", "class_gan", 1) == "none"  # one class: nothing to read
     assert resolve_conditioning("class", "pix2pix", 10) == "class"  # a set kind is taken as set
     assert resolve_conditioning("none", "class_gan", 10) == "none"
+    from vtgen.io.report_tables import models_table
+    table = models_table([{"direction": "v2t", "scope": "all", "conditioning": "inferred", "conditioning_setting": "auto"},
+                          {"direction": "t2v", "scope": "all", "conditioning": "class", "conditioning_setting": "class"}])
+    assert table["conditioning"].tolist() == ["inferred (auto)", "class"]  # the report says the objective chose it
 
 
 def test_class_batches_pair_rows_of_one_class():

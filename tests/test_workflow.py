@@ -204,6 +204,7 @@ def test_real_vitac_sample_trains_and_generates_from_unaligned_pairs(tmp_path, v
     for direction in ("v2t", "t2v"):
         summary = json.loads((project / f"models/{direction}/all/train.json").read_text())
         assert summary["training_pairs"] > 0 and summary["aligned_pairs"] == 0  # ViTac views are not aligned
+        assert direction == "t2v" or summary["conditioning"] == "none"  # one cloth: no class to read (auto)
         generated = pd.read_parquet(project / f"data/generated/{direction}/generated.parquet")
         assert (generated["ground_truth_path"] == "").all()  # a random partner is no ground truth
         assert (generated["split"] == "test").sum() == 10  # every test tile of the input modality (10 per folder)
@@ -241,6 +242,9 @@ def test_real_vt60_subset_in_its_own_layout_runs_the_whole_main_job(tmp_path, vt
     for direction in ("v2t", "t2v"):
         pairs = pd.read_parquet(project / f"data/pairs/{direction}.parquet")
         assert (pairs["pair_kind"] == "class").all()  # no touch frame is aligned with a photo
+    told = json.loads((project / "models/v2t/all/train.json").read_text())
+    assert (told["conditioning_setting"], told["conditioning"]) == ("auto", "inferred")  # class pairs: read the photo
+    assert told["input_reader"] == "features"
     for modality in ("visual", "tactile"):
         classify = json.loads((project / f"data/classify/{modality}/summary.json").read_text())
         assert classify["status"] == "ok" and len(classify["classes"]) == 10

@@ -284,11 +284,18 @@ def memorisation_table(memorisation: pd.DataFrame, direction: str) -> pd.DataFra
     return pd.DataFrame(rows) if rows else None
 
 
+def conditioning_cell(run: dict) -> str:
+    """What a model was told (train.json ``conditioning``), marked ``(auto)`` where ``translation.conditioning``
+    said auto and the objective chose it (train.json ``conditioning_setting``)."""
+    kind = run.get("conditioning", "none")
+    return f"{kind} (auto)" if run.get("conditioning_setting") == "auto" else kind
+
+
 def models_table(runs: list[dict]) -> pd.DataFrame:
     """One row per model folder from its train.json (a direction without pairs: its status, no model)."""
     return pd.DataFrame([{
         "model": f"{r['direction']}/{r['scope']}", "status": r.get("status", "ok"), "preset": r.get("preset"),
-        "conditioning": r.get("conditioning", "none") if r.get("status", "ok") == "ok" else None,
+        "conditioning": conditioning_cell(r) if r.get("status", "ok") == "ok" else None,
         "objective": (r.get("objective") or {}).get("name"), "objective chosen because": (r.get("objective") or {}).get("reason"),
         "capacity": (r.get("capacity") or {}).get("mode"), "width (ngf)": (r.get("settings") or {}).get("ngf"),
         "size": (r.get("settings") or {}).get("size"), "iterations": r.get("steps"),
