@@ -44,13 +44,14 @@ def test_off_adds_no_settings_key_and_a_value_may_be_given_per_direction(default
     params = copy.deepcopy(default_params)
     assert params["translation"]["class_gan"]["latent_map"] is False
     plain = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")
+    plain_t2v = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v")  # the defaults differ by direction
     assert "latent_map" not in plain  # so the default's checkpoint keys are those of the code before the switch
     assert build_generator(dict(plain, size=32, ngf=8)).latent_map is False
     params["translation"]["class_gan"]["latent_map"] = {"v2t": True, "t2v": False}
     validate_params(params)
     v2t = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")
     assert v2t["latent_map"] is True and build_generator(dict(v2t, size=32, ngf=8)).latent_map is True
-    assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v") == plain
+    assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v") == plain_t2v
     params["translation"]["class_gan"]["latent_map"] = "yes"
     with pytest.raises(ParamsError, match=r"translation\.class_gan\.latent_map"):
         validate_params(params)

@@ -61,11 +61,12 @@ def test_off_adds_no_settings_key_and_a_value_may_be_given_per_direction(default
     params = copy.deepcopy(default_params)
     assert params["translation"]["class_gan"]["lr_decay"] == 0.0
     plain = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")
+    plain_t2v = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v")  # the defaults differ by direction
     assert "lr_decay" not in plain  # so the default's checkpoint keys are those of the code before the switch
     params["translation"]["class_gan"]["lr_decay"] = {"v2t": 0.5, "t2v": 0.0}
     validate_params(params)
     assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")["lr_decay"] == 0.5
-    assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v") == plain
+    assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v") == plain_t2v
     params["translation"]["class_gan"]["lr_decay"] = 1.5
     with pytest.raises(ParamsError, match=r"translation\.class_gan\.lr_decay"):
         validate_params(params)

@@ -99,11 +99,12 @@ def test_off_adds_no_settings_key_a_value_may_be_given_per_direction_and_train_j
     params = copy.deepcopy(default_params)
     assert params["translation"]["class_gan"]["select_every"] == 0
     plain = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v")
+    plain_v2t = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")  # the defaults differ by direction
     assert "select_every" not in plain  # so the default's checkpoint keys are those of the code before the switch
     params["translation"]["class_gan"]["select_every"] = {"v2t": 0, "t2v": 500}
     validate_params(params)
     assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v")["select_every"] == 500
-    assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t") == plain
+    assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t") == plain_v2t
     params["translation"]["class_gan"]["select_every"] = -1
     with pytest.raises(ParamsError, match=r"translation\.class_gan\.select_every"):
         validate_params(params)
