@@ -112,6 +112,54 @@ def test_mode_seeking_loss_on_known_inputs():
         mode_seeking_loss(outputs[:3], targets[:3])
 
 
+def test_mode_seeking_per_pair_does_not_let_one_outlier_pair_pay_for_a_collapsed_one():
+    targets = torch.zeros(4, 3, 2, 2)
+    targets[1] = 0.5  # each real pair differs by 0.5
+    targets[3] = 0.5
+    outputs = torch.zeros(4, 3, 2, 2)
+    outputs[3] = 1.0  # pair (0, 1) collapsed, pair (2, 3) an outlier: gaps 0 and 1
+    assert float(mode_seeking_loss(outputs, targets)) == 0.0  # the batch's mean gap 0.5 hides the collapse
+    # per pair: max(0, 1 - 0 / 0.5) = 1 and max(0, 1 - 1 / 0.5) = 0, mean 0.5
+    assert float(mode_seeking_loss(outputs, targets, per_pair=True)) == pytest.approx(0.5)
+    outputs[1] = 0.25  # pair (0, 1) now differs by half the real gap: (0.5 + 0) / 2
+    assert float(mode_seeking_loss(outputs, targets, per_pair=True)) == pytest.approx(0.25)
+    targets[3] = 0.25  # each pair's own real gap is its scale: pair (2, 3) real gap 0.25, still clipped at 0
+    assert float(mode_seeking_loss(outputs, targets, per_pair=True)) == pytest.approx(0.25)
+
+
+def test_mode_seeking_per_pair_off_adds_no_key_and_on_changes_only_the_generator(default_params):
+    """``class_gan.mode_seeking_per_pair`` false (the default) adds no settings key, so the step and the checkpoints
+    hashed from the settings are those of the code before the switch; true is G's alone; either may be given per
+    direction, as may ``diffaugment``."""
+    from vtgen.io.params import ParamsError, validate_params
+    params = copy.deepcopy(default_params)
+    assert params["translation"]["class_gan"]["mode_seeking_per_pair"] is False
+    assert "mode_seeking_per_pair" not in objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")
+    params["translation"]["class_gan"].update(mode_seeking_per_pair={"v2t": True, "t2v": False},
+                                               diffaugment={"v2t": ["translation", "cutout"], "t2v": True})
+    validate_params(params)
+    v2t = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")
+    t2v = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v")
+    assert v2t["mode_seeking_per_pair"] is True and "mode_seeking_per_pair" not in t2v
+    assert v2t["diffaugment"] == ["translation", "cutout"] and t2v["diffaugment"] is True
+    params["translation"]["class_gan"]["diffaugment"] = {"v2t": ["hue"], "t2v": True}
+    with pytest.raises(ParamsError, match=r"translation\.class_gan\.diffaugment"):
+        validate_params(params)
+
+    def stepped(**overrides):
+        torch.manual_seed(0)
+        training = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, **overrides)), "cpu", num_classes=2)
+        training.step(*batch())
+        return weights(training.generator), weights(training.discriminator)
+
+    same = lambda a, b: all(torch.equal(p, q) for p, q in zip(a, b))  # noqa: E731
+    base_g, base_d = stepped()
+    g, d = stepped(mode_seeking_per_pair=False)
+    assert same(g, base_g) and same(d, base_d)
+    g, d = stepped(mode_seeking_per_pair=True)
+    assert same(d, base_d) and not same(g, base_g)
+
+
 def test_pooled_mode_seeking_counts_layout_and_not_pixel_noise():
     checker = (torch.arange(4)[:, None] + torch.arange(4)[None, :]) % 2 * 2.0 - 1  # a 4 x 4 +-1 checkerboard
     targets = torch.zeros(2, 1, 4, 4)

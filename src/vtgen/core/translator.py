@@ -72,7 +72,7 @@ class TranslatorTraining:
     ``input_channels`` is the generator's input: the 3 image channels plus those of a
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
-    ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``statistics``, ``class_guidance``, ``skips``,
+    ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``mode_seeking_per_pair``, ``statistics``, ``class_guidance``, ``skips``,
     ``latent``, ``upsample``, ``padding``, ``semantic``, ``mismatch``, ``nce``, ``texture``, ``contextual`` (see :meth:`class_step`), ``d_lr_ratio`` (D's learning rate over
     G's), ``ema`` (:meth:`update_average`: the generator a run yields is the average of its weights), ``lr_decay``
     (:meth:`schedule_learning_rate`) and ``generator`` (:func:`vtgen.core.models.build_generator`: unet, the default, or resnet), and needs ``num_classes``; ``semantic`` > 0 needs ``guide``, a classifier of the target modality over the
@@ -228,7 +228,8 @@ class TranslatorTraining:
         then G minimises L(D(A(G(x)), c), real) + mode_seeking·max(0, 1 − r), with
         r = mean|G(x₂ₖ) − G(x₂ₖ₊₁)| / mean|y₂ₖ − y₂ₖ₊₁| (:func:`mode_seeking_loss`: Mao et al. 2019, eq. 3,
         with the second input of the class in place of a second noise draw, clipped as in DSGAN), the gaps
-        taken between ``mode_seeking_pool`` x ``mode_seeking_pool`` means (1: pixels).
+        taken between ``mode_seeking_pool`` x ``mode_seeking_pool`` means (1: pixels), the hinge per pair with
+        ``mode_seeking_per_pair``.
         With ``statistics`` w > 0, G += w·:func:`statistics_loss` (G(x), y): colour, contrast and power spectrum
         of each output against those of the real image of its class in its row (summary statistics only, so
         their pull towards the class's typical values cannot copy or average the images themselves).
@@ -310,7 +311,8 @@ class TranslatorTraining:
         """:meth:`class_step`'s generator objective: ``loss_g_gan`` plus each weighted term, added in a fixed order."""
         cfg = self.settings
         seeking, guidance = cfg.get("mode_seeking", 0.0), cfg.get("class_guidance", 0.0)
-        loss_g = loss_g_gan + seeking * mode_seeking_loss(fake.float(), y, cfg.get("mode_seeking_pool", 1)) \
+        loss_g = loss_g_gan + seeking * mode_seeking_loss(fake.float(), y, cfg.get("mode_seeking_pool", 1),
+                                                     cfg.get("mode_seeking_per_pair", False)) \
             if seeking else loss_g_gan
         if guidance:
             loss_g = loss_g + guidance * F.cross_entropy(class_fake.float(), labels)
@@ -415,7 +417,7 @@ def statistics_loss(outputs: torch.Tensor, targets: torch.Tensor) -> torch.Tenso
     return mean + spread + spectrum
 
 
-def mode_seeking_loss(outputs: torch.Tensor, targets: torch.Tensor, pool: int = 1) -> torch.Tensor:
+def mode_seeking_loss(outputs: torch.Tensor, targets: torch.Tensor, pool: int = 1, per_pair: bool = False) -> torch.Tensor:
     """max(0, 1 − r), r = mean|o₂ₖ − o₂ₖ₊₁| / mean|t₂ₖ − t₂ₖ₊₁| over the row pairs (2k, 2k+1) of the batch,
     where the two rows of a pair are of one class and ``targets`` are real images of those classes.
 
@@ -424,13 +426,19 @@ def mode_seeking_loss(outputs: torch.Tensor, targets: torch.Tensor, pool: int = 
     its scale so that a low-contrast target modality (touch) is not pushed to more contrast than it has
     (an unclipped 1/r, tried first, tripled the output contrast of V2T). With ``pool`` p > 1 both gaps are
     taken between p x p means (``avg_pool2d``), so that varied layout counts and pixel noise, which two
-    outputs can differ by at no cost in realism, does not. ``targets`` is detached (data); N must be even
-    and at least 2."""
+    outputs can differ by at no cost in realism, does not. With ``per_pair`` the hinge is taken per pair k,
+    mean_k max(0, 1 − |o₂ₖ − o₂ₖ₊₁| / |t₂ₖ − t₂ₖ₊₁|) (each gap a mean over pixels), so that one pair's large gap (an
+    outlier such as a dark vignette or a saturated corner) no longer pays for another pair's collapse.
+    ``targets`` is detached (data); N must be even and at least 2."""
     n = outputs.shape[0]
     if n < 2 or n % 2:
         raise ValueError(f"mode seeking pairs rows (2k, 2k+1): the batch needs an even size >= 2, got {n}")
     if pool > 1:
         outputs, targets = F.avg_pool2d(outputs, pool), F.avg_pool2d(targets.detach().float(), pool)
+    if per_pair:
+        out_gap = (outputs[0::2] - outputs[1::2]).abs().flatten(1).mean(1)
+        real_gap = (targets[0::2] - targets[1::2]).abs().flatten(1).mean(1).detach().float()
+        return torch.relu(1.0 - out_gap / real_gap.clamp_min(MODE_SEEKING_EPS)).mean()
     out_gap = (outputs[0::2] - outputs[1::2]).abs().mean()
     real_gap = (targets[0::2] - targets[1::2]).abs().mean().detach().float()
     return torch.relu(1.0 - out_gap / real_gap.clamp_min(MODE_SEEKING_EPS))
