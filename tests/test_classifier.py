@@ -164,6 +164,38 @@ def test_training_gives_exactly_the_numbers_of_the_straightforward_loop(prescale
     assert run.train_seconds + run.eval_seconds + run.norm_seconds <= run.seconds
 
 
+def test_epoch_images_repeats_whole_passes_and_one_pass_is_the_plain_epoch(monkeypatch):
+    """``epoch_images`` = the set's size trains bit for bit as a plain epoch; a larger count is whole
+    shuffled passes, each image once per pass, then a cut-short pass, in mini-batches within each pass."""
+    import vtgen.core.classifier as classifier
+
+    train_x, train_y = stripes(9, seed=0)  # 27 images
+    test_x, test_y = stripes(4, seed=1)
+    settings = dict(TINY, epochs=2)
+    plain = train_classifier(train_x, train_y, test_x, test_y, 3, settings, seed=4)
+    same = train_classifier(train_x, train_y, test_x, test_y, 3, settings, seed=4, epoch_images=27)
+    assert same.test_accuracy == plain.test_accuracy and same.train_loss == plain.train_loss
+    for (name, mine), theirs in zip(same.model.state_dict().items(), plain.model.state_dict().values()):
+        assert torch.equal(mine, theirs), name
+
+    drawn = []
+    original = classifier._TrainingImages.batch
+
+    def recording(self, order, mirrored, start, size):
+        drawn.append(order[start:start + size].tolist())
+        return original(self, order, mirrored, start, size)
+
+    monkeypatch.setattr(classifier._TrainingImages, "batch", recording)
+    longer = train_classifier(train_x, train_y, test_x, test_y, 3, settings, seed=4, epoch_images=59)
+    assert [len(b) for b in drawn] == [16, 11, 16, 11, 5] * 2  # per epoch: passes of 27, 27, then 5 images
+    for epoch in (drawn[:5], drawn[5:]):
+        passes = [epoch[0] + epoch[1], epoch[2] + epoch[3], epoch[4]]
+        assert sorted(passes[0]) == sorted(passes[1]) == list(range(27)) and len(set(passes[2])) == 5
+        assert passes[0] != passes[1]  # a fresh order per pass
+    assert longer.train_images == 2 * 59
+    assert not torch.equal(longer.model.state_dict()["classifier.fc8.weight"], plain.model.state_dict()["classifier.fc8.weight"])
+
+
 def test_train_classifier_refuses_bad_sets():
     x, y = stripes(2, seed=0)
     with pytest.raises(ValueError, match="at least 2 classes"):
@@ -317,9 +349,8 @@ def test_stage_writes_tables_summary_and_plot(tmp_path, monkeypatch):
     assert summary["test_images_per_class"] == {c: 2 for c in CLASSES}
     # images per second: every image visit of every setting, seed and epoch, and every image evaluated
     speed = summary["throughput"]
-    visits = table.groupby(["setting", "seed"])["train_images"].first().sum()  # the confident candidate's set is drawn
-    assert speed["train_images"] == 2 * visits  # epochs x the settings' and seeds' training images
     runs = table.groupby(["setting", "seed"]).ngroup().nunique() - (table["seconds"] == 0).sum() // 2  # reused: not run
+    assert speed["train_images"] == 2 * 18 * runs  # epoch_images real: each epoch of every run is 18 visits, real's set
     assert speed["eval_images"] == 2 * (runs * (6 + 3) + 2 * 6)  # epochs x (test + validation per run, GAN-test)
     for kind in ("train", "eval"):
         assert speed[f"{kind}_seconds"] > 0

@@ -365,22 +365,30 @@ def _autocast(device: torch.device, precision: str):
 
 
 def _train_epoch(model: AlexNet, optimiser, data: _TrainingImages, sampler: torch.Generator, batch_size: int,
-                 precision: str) -> tuple[float, torch.Tensor]:
-    """One seeded shuffled pass over ``data`` in mini-batches; returns the mean loss and the order drawn."""
+                 precision: str, visits: int | None = None) -> tuple[float, torch.Tensor]:
+    """``visits`` image visits (None: ``data.count``, one pass) in mini-batches, as consecutive seeded shuffled
+    passes over ``data``, the last one cut short; a fresh order and mirroring per pass. Returns the mean loss
+    and the first pass's order. One whole pass draws exactly what a plain shuffled epoch draws."""
     device = data.labels.device
-    order = torch.randperm(data.count, generator=sampler)
-    mirrored = torch.rand(data.count, generator=sampler) < 0.5
-    order, mirrored = order.to(device), mirrored.to(device)
-    total = torch.zeros((), device=device)
-    for start in range(0, data.count, batch_size):
-        with _autocast(device, precision):
-            logits = model.scaled_forward(data.batch(order, mirrored, start, batch_size))
-        loss = F.cross_entropy(logits.float(), data.labels[order[start:start + batch_size]])
-        optimiser.zero_grad(set_to_none=True)
-        loss.backward()
-        optimiser.step()
-        total += loss.detach() * min(batch_size, data.count - start)
-    return float(total) / data.count, order
+    remaining = data.count if visits is None else visits
+    total, first = torch.zeros((), device=device), None
+    while remaining > 0:
+        order = torch.randperm(data.count, generator=sampler)
+        mirrored = torch.rand(data.count, generator=sampler) < 0.5
+        order, mirrored = order.to(device), mirrored.to(device)
+        first = order if first is None else first
+        used = min(remaining, data.count)
+        for start in range(0, used, batch_size):
+            size = min(batch_size, used - start)
+            with _autocast(device, precision):
+                logits = model.scaled_forward(data.batch(order, mirrored, start, size))
+            loss = F.cross_entropy(logits.float(), data.labels[order[start:start + size]])
+            optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            optimiser.step()
+            total += loss.detach() * size
+        remaining -= used
+    return float(total) / (data.count if visits is None else visits), first
 
 
 class EarlyStopping:
@@ -440,15 +448,18 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
                      extra_eval: Mapping[str, tuple[torch.Tensor, torch.Tensor]] | None = None,
                      weights: Mapping | None = None, retrain_layers: int = 2, weights_source: str = "weights",
                      progress: Callable[[int, dict], None] | None = None,
-                     val: tuple[torch.Tensor, torch.Tensor] | None = None, precision: str = "fp32") -> ClassifierRun:
+                     val: tuple[torch.Tensor, torch.Tensor] | None = None, precision: str = "fp32",
+                     epoch_images: int | None = None) -> ClassifierRun:
     """Train :func:`make_classifier` (``settings``: size, width, epochs, batch_size, lr; optional flip, default
     True, and patience, default 0).
 
     Images are uint8 ``N x 3 x size x size``, labels integers in ``[0, num_classes)``. Each epoch
     visits the training set once in a seeded shuffled order, in mini-batches (the last one may be
     smaller), with Adam at ``lr`` on cross-entropy; with ``flip`` each image is mirrored left-right
-    with probability 1/2. After every epoch the model is evaluated (eval mode, no grad) on the
-    test set, on each ``extra_eval`` set and on ``val``, and ``progress(epoch, row)`` is called.
+    with probability 1/2. With ``epoch_images`` an epoch is that many image visits instead (consecutive
+    shuffled passes, the last cut short), so that runs on sets of different sizes take equal steps.
+    After every epoch the model is evaluated (eval mode, no grad) on the test set, on each
+    ``extra_eval`` set and on ``val``, and ``progress(epoch, row)`` is called.
     With a non-empty ``val`` and ``patience`` > 0, training ends once ``patience`` epochs passed
     without a new best validation accuracy (:class:`EarlyStopping`); otherwise it runs ``epochs``.
     ``precision`` bf16 runs forward passes under bf16 autocast (fp32: none). Everything random derives
@@ -481,11 +492,11 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
             epoch_started = time.perf_counter()
             model.train()
             _hold_frozen_norms(model)
-            mean_loss, order = _train_epoch(model, optimiser, data, sampler, batch_size, precision)
+            mean_loss, order = _train_epoch(model, optimiser, data, sampler, batch_size, precision, epoch_images)
             if not math.isfinite(mean_loss):
                 raise TrainingDiverged(epoch, seed, mean_loss)
             run.train_loss.append(mean_loss)
-            run.train_images += data.count
+            run.train_images += data.count if epoch_images is None else epoch_images
             norm_started = time.perf_counter()
             with _autocast(device, precision):
                 refresh_norm_statistics(model, data.images[order[:NORM_IMAGES]], scaled=data.prescale)

@@ -9,6 +9,13 @@ seed in each setting and its test accuracy recorded after every epoch:
   (at least one per class), one subset per seed, shared by both low-data settings;
 * ``low-data real+generated`` - that subset plus every generated training image.
 
+With ``classify.epoch_images: real`` (the default) an epoch is, in every setting, as many image
+visits as the real training set holds (passes over a smaller set repeat, a larger one is sampled),
+so every setting takes the same optimiser steps and a gain from generated images is not merely more
+training: at 10% of the real images, 10 epochs of one pass each are a tenth of the steps, and more
+steps alone lifted low-data accuracy as much as the generated images did (benchmarks/README.md,
+"Thirty-fifth round"). ``own`` is one pass over the setting's own images (the paper's protocol).
+
 Generated images of a modality come from the direction that produces it (tactile from v2t,
 visual from t2v); all scope entries' images are used. Only rows generated from training inputs
 enter training; the rows generated from test inputs form the GAN-test set, scored after every
@@ -530,10 +537,11 @@ def _train_one(x, y, sets, cfg, modality, setting, seed, num_classes, device, pr
         bar.set_postfix({"epoch": epoch, "acc": f"{row['test_accuracy']:.3f}", "loss": f"{row['train_loss']:.3f}"},
                         refresh=True)
 
+    epoch_images = len(sets["train"][0]) if cfg["epoch_images"] == "real" else None
     try:
         return train_classifier(x, y, *sets["test"], num_classes, cfg, seed, device, extra_eval=extra, weights=weights,
                                 weights_source=str(weights_file), retrain_layers=cfg["retrain_layers"], progress=show,
-                                val=val, precision=precision)
+                                val=val, precision=precision, epoch_images=epoch_images)
     except TrainingDiverged as exc:
         bar.close()
         raise RuntimeError(f"classify {modality}: setting '{setting}', seed {seed}: the training loss became "
