@@ -193,6 +193,9 @@ def test_epoch_images_repeats_whole_passes_and_one_pass_is_the_plain_epoch(monke
         assert sorted(passes[0]) == sorted(passes[1]) == list(range(27)) and len(set(passes[2])) == 5
         assert passes[0] != passes[1]  # a fresh order per pass
     assert longer.train_images == 2 * 59
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(ValueError, match="epoch_images"):
+            train_classifier(train_x, train_y, test_x, test_y, 3, settings, seed=4, epoch_images=bad)
     assert not torch.equal(longer.model.state_dict()["classifier.fc8.weight"], plain.model.state_dict()["classifier.fc8.weight"])
 
 

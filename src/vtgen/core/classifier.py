@@ -472,6 +472,9 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
     """
     extra_eval = _checked_sets(train_x, train_y, test_x, test_y, num_classes, settings["size"], extra_eval, val,
                                precision)
+    if epoch_images is not None and (isinstance(epoch_images, bool) or not isinstance(epoch_images, int)
+                                     or epoch_images < 1):
+        raise ValueError(f"epoch_images must be a positive number of image visits or None, got {epoch_images!r}")
     epochs, batch_size, device = settings["epochs"], settings["batch_size"], torch.device(device)
 
     model = make_classifier(num_classes, settings, seed)

@@ -13,7 +13,7 @@ With ``classify.epoch_images: real`` (the default) an epoch is, in every setting
 visits as the real training set holds (passes over a smaller set repeat, a larger one is sampled),
 so every setting takes the same optimiser steps and a gain from generated images is not merely more
 training: at 10% of the real images, 10 epochs of one pass each are a tenth of the steps, and more
-steps alone lifted low-data accuracy as much as the generated images did (benchmarks/README.md,
+steps alone lifted low-data accuracy more than the generated images did (benchmarks/README.md,
 "Thirty-fifth round"). ``own`` is one pass over the setting's own images (the paper's protocol).
 
 Generated images of a modality come from the direction that produces it (tactile from v2t,
