@@ -194,18 +194,20 @@ def test_r1_penalty_on_a_linear_discriminator():
     assert float(r1_penalty(logits, real)) == pytest.approx(0.5 * 9 * 48)
 
 
-def test_r1_may_be_given_per_direction(default_params):
-    """``class_gan.r1`` is one number or one per direction; a per-direction block must name both directions."""
+@pytest.mark.parametrize("key, v2t, t2v", [("r1", 240.0, 1.0), ("upsample", "transpose", "resize")])
+def test_a_key_may_be_given_per_direction(default_params, key, v2t, t2v):
+    """``class_gan.r1`` and ``upsample`` are one value or one per direction; a per-direction block must name both
+    directions, and each direction trains with its own value."""
     import copy
 
     from vtgen.io.params import ParamsError, validate_params
     params = copy.deepcopy(default_params)
-    params["translation"]["class_gan"]["r1"] = {"v2t": 240.0, "t2v": 1.0}
+    params["translation"]["class_gan"][key] = {"v2t": v2t, "t2v": t2v}
     validate_params(params)
-    for direction, weight in (("v2t", 240.0), ("t2v", 1.0)):
-        assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", direction)["r1"] == weight
-    params["translation"]["class_gan"]["r1"] = {"t2v": 1.0}
-    with pytest.raises(ParamsError, match=r"translation\.class_gan\.r1"):
+    for direction, value in (("v2t", v2t), ("t2v", t2v)):
+        assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", direction)[key] == value
+    params["translation"]["class_gan"][key] = {"t2v": t2v}
+    with pytest.raises(ParamsError, match=rf"translation\.class_gan\.{key}"):
         validate_params(params)
 
 
