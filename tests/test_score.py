@@ -342,3 +342,63 @@ def test_verdicts_read_beyond_the_noise_from_the_paired_difference():
     minus = goals["t2v"]["fid_classifier"]["generated_minus"]
     assert minus["flat_mean_colour"] == {"value": 176.0 - 381.0, "low": -300.0, "high": -50.0, "n": 72,
                                          "n_reference": 72}
+
+
+def _class_textures(classes: np.ndarray, seed: int, size: int = 32) -> torch.Tensor:
+    """uint8 N x 3 x size x size images; class k (0, 1, 2) is a grating of its own colour, angle and frequency."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float64)
+    colours = np.array([[180, 90, 60], [70, 140, 200], [120, 170, 90]], dtype=np.float64)
+    out = np.empty((len(classes), 3, size, size), dtype=np.uint8)
+    for i, k in enumerate(classes):
+        angle, freq = np.pi * k / 3 + rng.normal(0, 0.1), (0.08 + 0.08 * k) * rng.uniform(0.9, 1.1)
+        wave = np.sin(2 * np.pi * freq * (np.cos(angle) * xx + np.sin(angle) * yy) + rng.uniform(0, 2 * np.pi))
+        grey = 40 * wave + rng.normal(0, 12, (size, size))
+        out[i] = np.clip(colours[k][:, None, None] + grey[None], 0, 255).round().astype(np.uint8)
+    return torch.from_numpy(out)
+
+
+def test_class_wise_kid_exposes_a_generator_that_draws_another_class():
+    """Two generated sets hold the same pooled mixture of fresh draws: one draws each input's own class, the
+    other the next class's look. Pooled over classes their KIDs agree within the noise; the class-wise KID
+    (mean over classes of the per-class KID) separates them beyond the intervals, and only the swapped set
+    fails to beat the flat class colour class-wise (paired difference)."""
+    from vtgen.core.distribution import RandomEncoder, gaussian_blur
+    from vtgen.stages.score import FeatureCache, distribution_direction, mean_over_classes, verdicts
+
+    per_class = 40
+    labels = np.repeat(np.arange(3), per_class)
+    names = np.array(["a", "b", "c"])[labels]
+    real = _class_textures(labels, seed=0)
+    flat = real.float().mean(dim=(2, 3), keepdim=True).expand_as(real).round().to(torch.uint8)
+    sets = {"real_test": (real, names, np.arange(len(labels)).astype(str)),
+            ("generated", "right"): (_class_textures(labels, seed=1), names, names),
+            ("generated", "swapped"): (_class_textures((labels + 1) % 3, seed=1), names, names),
+            ("flat_mean_colour", "-"): (flat, names, names),
+            ("mean_image", "-"): (gaussian_blur(real, 8.0), names, names)}
+    table, _, differences = distribution_direction("t2v", sets, FeatureCache({"random": RandomEncoder()}), seed=0,
+                                                   max_per_class=100)
+
+    def row(metric, scope):
+        found = table[(table["metric"] == metric) & (table["scope"] == scope) & (table["class"] == "(all)")
+                      & (table["view"] == "random") & (table["candidate"] == "generated")]
+        assert len(found) == 1
+        return found.iloc[0]
+
+    right, swapped = row("kid_classwise", "right"), row("kid_classwise", "swapped")
+    assert swapped["low"] > right["high"] and swapped["value"] > 10 * max(right["value"], 1e-4)
+    assert right["n"] == swapped["n"] == len(labels) // 2  # half B's 20 per class
+    pooled_right, pooled_swapped = row("kid", "right"), row("kid", "swapped")
+    assert pooled_swapped["low"] <= pooled_right["high"] and pooled_right["low"] <= pooled_swapped["high"]
+    # the per-class rows it averages
+    per = table[(table["metric"] == "kid") & (table["scope"] == "swapped") & (table["view"] == "random")
+                & (table["class"] != "(all)")]
+    assert swapped["value"] == pytest.approx(per["value"].mean(), rel=1e-12)
+
+    paired = differences[(differences["metric"] == "kid_classwise") & (differences["view"] == "random")
+                         & (differences["baseline"] == "flat_mean_colour")].set_index("scope")
+    assert paired.loc["right", "high"] < 0 < paired.loc["swapped", "value"]
+    assert paired.loc["right", "n"] == len(labels) // 2
+
+    mean, low, high = mean_over_classes([1.0, 2.0, 6.0], [3.0, 0.0, 4.0])  # sqrt(9 + 16) / 3 = 5 / 3
+    assert (mean, low, high) == pytest.approx((3.0, 3.0 - 1.96 * 5 / 3, 3.0 + 1.96 * 5 / 3), rel=1e-12)

@@ -16,11 +16,11 @@ from vtgen.io.report_tables import DISTRIBUTION_BASELINES, has_value
 REFERENCE_LEVELS = {"real_train": "real_vs_real", "nearest_neighbour": "nearest_neighbour",
                     "mean_image": "mean_image", "flat_mean_colour": "flat_mean_colour"}
 # True when lower is better
-LOWER_IS_BETTER = {"kid": True, "fid": True, "spectrum": True, "precision": False, "recall": False,
+LOWER_IS_BETTER = {"kid": True, "kid_classwise": True, "fid": True, "spectrum": True, "precision": False, "recall": False,
                    "density": False, "coverage": False}
 # metrics.json: (metric, view) per direction, each with generated, real_heldout and best_baseline
-HEADLINE_DISTRIBUTION = [("kid", "classifier"), ("fid", "classifier"), ("two_sample", "classifier"),
-                         ("spectrum", "pixels")]
+HEADLINE_DISTRIBUTION = [("kid", "classifier"), ("kid_classwise", "classifier"), ("fid", "classifier"),
+                         ("two_sample", "classifier"), ("spectrum", "pixels")]
 
 
 def _number(value) -> float | None:

@@ -19,10 +19,10 @@ GAN_TEST = "GAN-test"
 SSIM_BASELINES = ("nearest_neighbour", "mean_image", "flat_mean_colour")
 DISTRIBUTION_BASELINES = ("nearest_neighbour", "mean_image", "flat_mean_colour", "blurred_real")
 # (metric, view) columns of the distribution tables, in order; their labels
-DISTRIBUTION_SHOWN = [("kid", "classifier"), ("fid", "classifier"), ("two_sample", "classifier"),
+DISTRIBUTION_SHOWN = [("kid", "classifier"), ("kid_classwise", "classifier"), ("fid", "classifier"), ("two_sample", "classifier"),
                       ("precision", "classifier"), ("recall", "classifier"), ("coverage", "classifier"),
                       ("kid", "random"), ("fid", "random"), ("two_sample", "random"), ("spectrum", "pixels")]
-METRIC_LABELS = {"kid": "KID", "fid": "FID", "two_sample": "two-sample acc.", "precision": "precision",
+METRIC_LABELS = {"kid": "KID", "kid_classwise": "class-wise KID", "fid": "FID", "two_sample": "two-sample acc.", "precision": "precision",
                  "recall": "recall", "density": "density", "coverage": "coverage", "spectrum": "spectrum dist."}
 
 

@@ -36,7 +36,9 @@ density and coverage. ``memorisation.csv`` compares each generated test image's 
 training targets with that of real held-out images (classifier features and pixels).
 ``differences.csv`` holds generated's KID and FID minus each baseline's on the same reference, with
 paired intervals (the reference's own noise cancels in a difference; two sets' separate intervals
-both carry it). ``summary.json`` holds one verdict per direction and metric family.
+both carry it). The class-wise KID (``kid_classwise``, :func:`classwise_kid_rows`) averages each class's
+KID over classes, so a set that draws one class's look for another cannot hide in the pooled mixture.
+``summary.json`` holds one verdict per direction and metric family.
 """
 
 from __future__ import annotations
@@ -88,9 +90,10 @@ BASELINES = ["nearest_neighbour", "mean_image", "flat_mean_colour", "blurred_rea
 DISTRIBUTION_METRICS = {"kid": ("KID", True), "fid": ("FID", True), "two_sample": ("two-sample accuracy", True),
                         "precision": ("precision", False), "recall": ("recall", False),
                         "density": ("density", False), "coverage": ("coverage", False),
-                        "spectrum": ("power-spectrum distance", True)}
-VERDICT_METRICS = [("kid", "classifier"), ("kid", "random"), ("fid", "classifier"), ("fid", "random"),
-                   ("two_sample", "classifier"), ("coverage", "classifier"), ("spectrum", "pixels")]
+                        "spectrum": ("power-spectrum distance", True),
+                        "kid_classwise": ("class-wise KID", True)}
+VERDICT_METRICS = [("kid", "classifier"), ("kid", "random"), ("kid_classwise", "classifier"), ("fid", "classifier"),
+                   ("fid", "random"), ("two_sample", "classifier"), ("coverage", "classifier"), ("spectrum", "pixels")]
 KID_SUBSETS = 50
 # below this many images per set a two-sample accuracy's interval spans most of [0, 1] (n = 9 + 9:
 # about +-0.2), so it is not computed (a class of the default run has 6 held-out images per half)
@@ -494,7 +497,7 @@ def distribution_direction(direction: str, sets: dict, cache: FeatureCache, seed
     for key, (images, _, keys, _) in candidates.items():
         features(images, keys, np.concatenate([chosen[(c, key)] for c in classes]))
 
-    table_rows, pooled = [], {}
+    table_rows, pooled, per_class = [], {}, {}
     for name in [*classes, "(all)"]:
         names = classes if name == "(all)" else [name]
         ref_index = np.concatenate([chosen_ref[c] for c in names])
@@ -508,6 +511,8 @@ def distribution_direction(direction: str, sets: dict, cache: FeatureCache, seed
             candidate = features(images, keys, rows)
             if name == "(all)":
                 pooled[key] = candidate
+            else:
+                per_class.setdefault(name, {"reference": ref})[key] = candidate
             for (view, metric), (value, low, high) in _set_metrics(ref, candidate, fid_resamples, seed).items():
                 table_rows.append({"direction": direction, "scope": key[1], "class": name, "candidate": key[0],
                                    "view": view, "metric": metric, "value": value, "low": low, "high": high,
@@ -517,7 +522,75 @@ def distribution_direction(direction: str, sets: dict, cache: FeatureCache, seed
              "max_per_class": int(max_per_class), "fid_resamples": int(fid_resamples)}
     differences = paired_differences(direction, ref, pooled, fid_resamples, seed) if pooled else \
         pd.DataFrame(columns=DIFFERENCE_COLUMNS)
-    return pd.DataFrame(table_rows, columns=DISTRIBUTION_COLUMNS), facts, differences
+    table = pd.DataFrame(table_rows, columns=DISTRIBUTION_COLUMNS)
+    classwise = classwise_kid_differences(direction, per_class, seed)
+    table = pd.concat([table, classwise_kid_rows(table)], ignore_index=True)
+    if len(classwise):
+        differences = pd.concat([differences, classwise], ignore_index=True) if len(differences) else classwise
+    return table, facts, differences
+
+
+def mean_over_classes(values, stds) -> tuple[float, float, float]:
+    """(mean, low, high) of per-class values with independent errors: the mean over the C classes and
+    mean +- 1.96 sqrt(sum std_c^2) / C (the classes' images are disjoint sets, so their errors add in
+    variance)."""
+    values, stds = np.asarray(values, float), np.asarray(stds, float)
+    mean, std = float(values.mean()), float(np.sqrt((stds ** 2).sum()) / len(values))
+    return mean, mean - 1.96 * std, mean + 1.96 * std
+
+
+def classwise_kid_rows(table: pd.DataFrame) -> pd.DataFrame:
+    """Class-wise KID of every candidate set (``kid_classwise``, class ``(all)``): the mean over classes of
+    its per-class KID against that class's real held-out half B, an intra-class distance in the manner of
+    intra-FID (Miyato & Koyama 2018). Pooled over classes, a set can match the real mixture while each
+    class's images look like another class's (one motif drawn for several classes); class-wise it cannot.
+    Interval: :func:`mean_over_classes` of the per-class KIDs' std (their interval is mean +- 1.96 std); n
+    sums the classes' images. Classes where the KID could not be computed are left out."""
+    part = table[(table["metric"] == "kid") & (table["class"] != "(all)") & table["value"].notna()]
+    rows = []
+    for (scope, candidate, view), group in part.groupby(["scope", "candidate", "view"], sort=False):
+        value, low, high = mean_over_classes(group["value"], (group["high"] - group["low"]) / 3.92)
+        rows.append({"direction": group["direction"].iloc[0], "scope": scope, "class": "(all)",
+                     "candidate": candidate, "view": view, "metric": "kid_classwise", "value": value, "low": low,
+                     "high": high, "n": int(group["n"].sum()), "n_reference": int(group["n_reference"].sum())})
+    return pd.DataFrame(rows, columns=DISTRIBUTION_COLUMNS)
+
+
+def classwise_kid_differences(direction: str, per_class: dict, seed: int) -> pd.DataFrame:
+    """Class-wise KID of each generated set minus each trivial baseline's (``kid_classwise`` rows of
+    DIFFERENCE_COLUMNS): per class the paired KID difference against that class's reference
+    (:func:`vtgen.core.distribution.paired_kid_difference`, subsets as :func:`paired_differences`), then
+    :func:`mean_over_classes`. ``per_class``: class -> {"reference": view -> features, (candidate, scope) ->
+    view -> features}. A class where the difference cannot be computed (fewer than 2 images in a set) is left
+    out of that pair's mean."""
+    found: dict = {}
+    for name, sets in per_class.items():
+        reference = sets["reference"]
+        for key, generated in sets.items():
+            if key == "reference" or key[0] != "generated":
+                continue
+            scope = key[1]
+            for baseline in BASELINES:
+                base = sets.get((baseline, "-"))
+                if base is None:
+                    continue
+                for view in [v for v in reference if v != "spectrum"]:
+                    real, a, b = reference[view], generated[view], base[view]
+                    smaller = min(len(real), len(a), len(b))
+                    try:
+                        mean, std = dist.paired_kid_difference(real, a, b, subsets=KID_SUBSETS, seed=seed,
+                                                               subset_size=max(2, smaller // 2) if smaller >= 4 else smaller)
+                    except ValueError:
+                        continue
+                    found.setdefault((scope, view, baseline), []).append((mean, std, len(a), len(b), len(real)))
+    rows = []
+    for (scope, view, baseline), items in found.items():
+        means, stds, n, n_base, n_ref = zip(*items)
+        value, low, high = mean_over_classes(means, stds)
+        rows.append({"direction": direction, "scope": scope, "view": view, "metric": "kid_classwise",
+                     "baseline": baseline, "value": value, "low": low, "high": high, "n": sum(n),
+                     "n_baseline": sum(n_base), "n_reference": sum(n_ref)})
+    return pd.DataFrame(rows, columns=DIFFERENCE_COLUMNS)
 
 
 def paired_differences(direction: str, reference: dict, candidates: dict, fid_resamples: int,
@@ -661,6 +734,7 @@ def goal_metrics(distribution: pd.DataFrame, memorisation: pd.DataFrame, diversi
         generated_scope = "all" if ((rows["candidate"] == "generated") & (rows["scope"] == "all")).any() else None
         for metric, candidates in (("recall", ["generated", "real_heldout"]), ("coverage", ["generated", "real_heldout"]),
                                    ("kid", ["generated", "real_heldout", *BASELINES]),
+                                   ("kid_classwise", ["generated", "real_heldout", *BASELINES]),
                                    ("fid", ["generated", "real_heldout", *BASELINES])):
             part = rows[rows["metric"] == metric]
             entry = {}
@@ -672,7 +746,7 @@ def goal_metrics(distribution: pd.DataFrame, memorisation: pd.DataFrame, diversi
                     r = match.iloc[0]
                     entry[candidate] = {"value": _num(r["value"]), "low": _num(r["low"]), "high": _num(r["high"]),
                                         "n": int(r["n"]), "n_reference": int(r["n_reference"])}
-            if differences is not None and metric in ("kid", "fid") and generated_scope:
+            if differences is not None and metric in ("kid", "kid_classwise", "fid") and generated_scope:
                 paired = differences[(differences["direction"] == direction) & (differences["view"] == "classifier")
                                      & (differences["metric"] == metric) & (differences["scope"] == generated_scope)]
                 if len(paired):
