@@ -11,7 +11,9 @@ here on the real training images of the run with the classify stage's settings):
 * recall and coverage (k = 5) of generated vs the real training targets, beside the real test images' own
   (goal 1: >= half of real's);
 * FID and KID (classifier view) of generated, flat mean colour, mean image and real test images against the
-  real training targets (goal 2: generated below both no-learning baselines, outside the KID interval);
+  real training targets (goal 2: generated below both no-learning baselines, outside the KID interval), and the
+  class-wise KID: the mean over classes of each class's KID against that class's training targets
+  (:func:`vtgen.stages.score.mean_over_classes`), which a set drawing one class's look for another cannot pass;
 * GAN-test: the target classifier's accuracy on the generated images (Wilson 95% interval), beside its
   accuracy on real test targets and the input-modality classifier's on the real test inputs (goal 3:
   >= 0.8 x the lower of the two), and the same after a 1-pixel Gaussian blur of the images it is given
@@ -31,7 +33,7 @@ for this direction), ``class_gan.<key>`` or preset keys, set over the run folder
 must be labelled as such.
 ``--truncation 1 0.5 0`` measures each trained generator once per psi its latent codes are scaled by
 (``translate``'s truncation); ``--model <run>/models/v2t/all`` measures a main job's trained generator instead
-of training one.
+of training one; ``--outputs sheets/*.pt`` measures test outputs an earlier ``--sheets`` run saved.
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ from vtgen.io.images import labelled_sheet, read_tiles, write_png
 from vtgen.io.params import model_settings, validate_params, with_recipe
 from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
 from vtgen.stages.generate import translate
+from vtgen.stages.score import mean_over_classes
 from vtgen.stages.train import (build_conditioning, build_guide, build_referee, load_pair_data, objective_settings,
                                 output_settings, pairs_in, resolve_conditioning, resolve_objective, train_translator, with_frame_views)
 from translation_quality import parse_variant  # the same name:key=value;... variants (benchmarks/ is on sys.path)
@@ -184,6 +187,7 @@ def goal_numbers(generated: torch.Tensor, classes: np.ndarray, context: dict) ->
         "prdc": prdc_scores(real_train, features),
         "fid": fid(real_train, features),
         "kid": kid(real_train, features),
+        "kid_classwise": classwise_kid(features, classes, real_train, context["train_target_classes"]),
         "gan_test": float(correct.mean()),
         "gan_test_blurred": float((predict(context["model"], resized(blurred(generated), side)).numpy()
                                    == np.array([index[c] for c in classes])).mean()),
@@ -191,6 +195,21 @@ def goal_numbers(generated: torch.Tensor, classes: np.ndarray, context: dict) ->
         "edge_outliers": float((edge_gap(generated) > context["edge_threshold"]).mean()),
     }
     return out
+
+
+def classwise_kid(features: torch.Tensor, classes: np.ndarray, real: torch.Tensor, real_classes: np.ndarray):
+    """(mean, low, high) over classes of each class's KID (generated of the class against real of the class;
+    subsets of half the smaller set), :func:`vtgen.stages.score.mean_over_classes` of their stds."""
+    values, stds = [], []
+    for name in sorted(set(classes)):
+        a, b = real[torch.from_numpy(real_classes == name)], features[torch.from_numpy(classes == name)]
+        smaller = min(len(a), len(b))
+        if smaller < 2:
+            continue
+        mean, std = kid(a, b, subsets=50, subset_size=max(2, smaller // 2) if smaller >= 4 else smaller)
+        values.append(mean)
+        stds.append(std)
+    return mean_over_classes(values, stds)
 
 
 def prepare_context(params, pairs, splits, direction, root) -> dict:
@@ -205,13 +224,13 @@ def prepare_context(params, pairs, splits, direction, root) -> dict:
         rows = splits[(splits["split"] == split) & (splits["modality"] == modality)].sort_values("path")
         return read_tiles(list(rows["path"]), size, root), rows["class"].to_numpy()
 
-    train_targets, _ = tiles("train", target)
+    train_targets, train_target_classes = tiles("train", target)
     test_targets, test_target_classes = tiles("test", target)
     test_inputs, test_input_classes = tiles("test", source)
     encoder = classifier_encoder(model)
     context = {"model": model, "encoder": encoder, "side": side, "classes": classes,
                "real_accuracy": (real_acc, real_n), "input_accuracy": (input_acc, input_n),
-               "train_targets": train_targets, "test_targets": test_targets,
+               "train_targets": train_targets, "train_target_classes": train_target_classes, "test_targets": test_targets,
                "test_target_classes": test_target_classes, "test_inputs": test_inputs,
                "test_input_classes": test_input_classes,
                "edge_threshold": float(np.quantile(edge_gap(train_targets), 0.99)),
@@ -228,10 +247,10 @@ def row(name: str, seed, r: dict) -> str:
     def ci(t):
         return f"{t[0]:.2f} [{t[1]:.2f}, {t[2]:.2f}]"
     low, high = wilson_interval(r["gan_test"], r["n"])
-    k = r["kid"]
+    k, c = r["kid"], r["kid_classwise"]
     return (f"| {name} | {seed} | {r['n']} | {ci(r['diversity_pixels'])} | {ci(r['diversity_features'])} | "
             f"{r['prdc']['recall']:.2f} / {r['prdc']['coverage']:.2f} | {r['fid']:.1f} | "
-            f"{k[0]:.4f} ± {1.96 * k[1]:.4f} | {r['gan_test']:.3f} [{low:.3f}, {high:.3f}] | {r['gan_test_blurred']:.3f} | "
+            f"{k[0]:.4f} ± {1.96 * k[1]:.4f} | {c[0]:.4f} [{c[1]:.4f}, {c[2]:.4f}] | {r['gan_test']:.3f} [{low:.3f}, {high:.3f}] | {r['gan_test_blurred']:.3f} | "
             f"{r['memorisation']:.3f} | {r['edge_outliers']:.3f} | {r.get('seconds', 0):.0f} |")
 
 
@@ -242,6 +261,8 @@ def main() -> None:
     parser.add_argument("--variant", action="append", default=[], help="name:key=value;key=value")
     parser.add_argument("--model", type=Path, help="measure this trained model folder (e.g. <run>/models/v2t/all) "
                                                    "instead of training variants")
+    parser.add_argument("--outputs", type=Path, nargs="+", default=[],
+                        help="measure these saved test outputs (the .pt files --sheets writes) of this run folder")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--iterations", type=int, default=1500)
     parser.add_argument("--threads", type=int, default=1)
@@ -250,8 +271,8 @@ def main() -> None:
     parser.add_argument("--sheets", type=Path, help="folder for one PNG per run, variant and seed: per class, test inputs, "
                                                    "their translations and real test targets (and the outputs as .pt)")
     args = parser.parse_args()
-    if not args.variant and not args.model:
-        parser.error("give --variant (train and measure) or --model (measure a trained model)")
+    if not args.variant and not args.model and not args.outputs:
+        parser.error("give --variant (train and measure), --model (measure a trained model) or --outputs")
     root = Path(args.run).resolve()
     params = with_recipe(validate_params(yaml.safe_load((root / "params.yaml").read_text())))
     torch.set_num_threads(args.threads)
@@ -264,8 +285,8 @@ def main() -> None:
     print(f"# {root} {args.direction}, {args.iterations} iterations{applied}; real-only accuracy: target {acc:.3f} (n = {n}), "
           f"input {in_acc:.3f} (n = {in_n}); GAN-test goal >= {0.8 * min(acc, in_acc):.3f}", flush=True)
     header = ("| variant | seed | n | diversity pixels [95%] | diversity features [95%] | recall / coverage | FID | "
-              "KID ± 95% | GAN-test [95%] | GAN-test, blurred | memorisation | edge outliers | train s |\n"
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+              "KID ± 95% | class-wise KID [95%] | GAN-test [95%] | GAN-test, blurred | memorisation | edge outliers | "
+              "train s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [row(name, "-", r) for name, r in context["references"].items()]
     if args.model:
         generator, meta = load_translator(args.model)
@@ -283,6 +304,13 @@ def main() -> None:
                 sheet = args.sheets / f"{root.name}_{args.direction}_model_psi{psi:g}.png"
                 write_sheet(sheet, generated, context)
             print(lines[-1], flush=True)
+    for path in args.outputs:
+        generated = torch.load(path)
+        if len(generated) != len(context["test_inputs"]):
+            parser.error(f"{path}: {len(generated)} outputs, but {root} has {len(context['test_inputs'])} test inputs")
+        lines.append(row(f"{path.stem} (saved)", "-", {"seconds": 0.0, **goal_numbers(
+            generated, context["test_input_classes"], context)}))
+        print(lines[-1], flush=True)
     for text in args.variant:
         name, overrides = parse_variant(text)
         for seed in args.seeds:
