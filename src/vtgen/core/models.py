@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 from torch.nn.utils.parametrizations import spectral_norm
 
@@ -149,6 +150,9 @@ class UNetGenerator(nn.Module):
     so that no level sees a zero frame that tells it where the border is ('zeros', pix2pix's).
     ``grey_output`` draws one channel and repeats it ``out_channels`` times (:func:`grey_targets`: for targets
     that are grey, such as a monochrome optical-tactile sensor's, an output can then never carry a colour cast).
+    ``inject`` n > 0 feeds the input's last n channels (the condition's class maps or reference, then z; see
+    ``in_channels``) again into every encoder level, area-averaged to that level's side and concatenated to its
+    input (BicycleGAN's "add to all", Zhu et al. 2017), so the class and the code cannot fade in the first levels.
     """
 
     def __init__(
@@ -165,6 +169,7 @@ class UNetGenerator(nn.Module):
         padding: str = "zeros",
         latent_map: bool = False,
         grey_output: bool = False,
+        inject: int = 0,
     ) -> None:
         super().__init__()
         if upsample not in UPSAMPLINGS:
@@ -185,13 +190,16 @@ class UNetGenerator(nn.Module):
         self.in_channels = in_channels
         self.out_channels = out_channels
         self.grey_output = bool(grey_output)
+        if isinstance(inject, bool) or not isinstance(inject, int) or not 0 <= inject <= in_channels + latent:
+            raise ValueError(f"inject must be an integer in [0, {in_channels + latent}] (the input's channels), got {inject!r}")
+        self.inject = inject
         self.ngf = ngf
         depth = self.depth
         widths = [encoder_width(level, ngf) for level in range(depth)]
 
         encoder: list[nn.Module] = []
         for level in range(depth):
-            source = in_channels + latent if level == 0 else widths[level - 1]
+            source = in_channels + latent if level == 0 else widths[level - 1] + inject
             mode = padding if size >> level > 2 else "zeros"  # the input side of this level
             conv = downsampling_conv(source, widths[level], kernel, level in (0, depth - 1), mode)
             if level == 0:
@@ -227,8 +235,9 @@ class UNetGenerator(nn.Module):
     def forward(self, x: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
         x = with_latent_code(self, x, z)
         skips = []
-        for block in self.encoder:
-            x = block(x)
+        code = x[:, x.shape[1] - self.inject:] if self.inject else None
+        for level, block in enumerate(self.encoder):
+            x = block(x if code is None or level == 0 else with_injected(x, code))
             skips.append(x)
         x = self.decoder[0](skips[-1])
         for level in range(1, self.depth):
@@ -240,7 +249,7 @@ class UNetGenerator(nn.Module):
         """The encoder's outputs at ``levels`` (0-based, ascending) for ``x`` (N x in_channels x S x S) with a zero
         latent code: the features PatchNCE compares (:mod:`vtgen.core.patchnce`). BatchNorm normalises by the
         batch's statistics as in training, but its running statistics are left as they were."""
-        return encoder_outputs(self, self.encoder, x, levels)
+        return encoder_outputs(self, self.encoder, x, levels, self.inject)
 
     @property
     def feature_levels(self) -> int:
@@ -280,22 +289,29 @@ def with_latent_code(generator: nn.Module, x: torch.Tensor, z: torch.Tensor | No
     return torch.cat([x, z.to(x.dtype)[:, :, None, None].expand(-1, -1, x.shape[2], x.shape[3])], dim=1)
 
 
+def with_injected(x: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
+    """``x`` with ``code`` (N x n x S x S) area-averaged to x's side as n more channels (:class:`UNetGenerator`'s inject)."""
+    return torch.cat([x, F.adaptive_avg_pool2d(code, x.shape[-2:]).to(x.dtype)], dim=1)
+
+
 def encoder_outputs(generator: nn.Module, levels_in_order: nn.ModuleList, x: torch.Tensor,
-                    levels: tuple[int, ...]) -> list[torch.Tensor]:
+                    levels: tuple[int, ...], inject: int = 0) -> list[torch.Tensor]:
     """The outputs of ``levels_in_order[l]`` for l in ``levels`` (0-based, ascending), run on ``x`` with a zero
     latent code: the features PatchNCE compares (:mod:`vtgen.core.patchnce`). BatchNorm normalises by the
-    batch's statistics as in training, but its running statistics and counters are left as they were."""
+    batch's statistics as in training, but its running statistics and counters are left as they were.
+    ``inject``: the U-Net's (its input's last channels fed again to every level after the first)."""
     check_image_batch(x, generator.in_channels, generator.size, type(generator).__name__)
     if generator.latent:
         x = torch.cat([x, x.new_zeros(x.shape[0], generator.latent, x.shape[2], x.shape[3])], dim=1)
     norms = [m for m in levels_in_order.modules() if isinstance(m, nn.BatchNorm2d)]
     momenta, counts = [m.momentum for m in norms], [m.num_batches_tracked.clone() for m in norms]
     outputs = []
+    code = x[:, x.shape[1] - inject:] if inject else None
     try:
         for m in norms:
             m.momentum = 0.0  # running = (1 - 0)·running + 0·batch: unchanged
         for level, block in enumerate(levels_in_order[:max(levels) + 1]):
-            x = block(x)
+            x = block(x if code is None or level == 0 else with_injected(x, code))
             if level in levels:
                 outputs.append(x)
     finally:
@@ -401,17 +417,23 @@ def grey_targets(images: torch.Tensor) -> bool:
 
 def build_generator(settings: dict, in_channels: int = 3) -> nn.Module:
     """The generator ``settings`` name (``generator``: 'unet', the default, or 'resnet'), from its size, ngf,
-    latent, latent_map and (the U-Net's) kernel, skips, upsample and padding keys. The ResNet always resizes and reflects, so it
-    ignores ``upsample`` and ``padding``; it has no skip connections, so ``skips`` other than all (None) is refused. Raises ValueError for
+    latent, latent_map and (the U-Net's) kernel, skips, upsample, padding and inject_every_level keys. The ResNet always resizes and reflects, so it
+    ignores ``upsample`` and ``padding``; it has no skip connections, so ``skips`` other than all (None) is refused, and so is
+    ``inject_every_level``. Raises ValueError for
     that and for an unknown kind. ``grey_output`` (absent: False) makes either draw one channel, repeated."""
     kind = settings.get("generator", "unet")
     latent, latent_map = settings.get("latent", 0), settings.get("latent_map", False)
     grey = settings.get("grey_output", False)
     if kind == "unet":
+        # inject_every_level: the condition's channels (all but the 3 image channels) and z, again at every level
+        inject = in_channels - 3 + latent if settings.get("inject_every_level") else 0
         return UNetGenerator(settings["size"], settings["ngf"], settings["kernel"], in_channels=in_channels,
                              skips=settings.get("skips"), latent=latent,
                              upsample=settings.get("upsample", "transpose"), padding=settings.get("padding", "zeros"),
-                             latent_map=latent_map, grey_output=grey)
+                             latent_map=latent_map, grey_output=grey, inject=inject)
+    if settings.get("inject_every_level"):
+        raise ValueError("class_gan.inject_every_level is a U-Net setting: set it to false with class_gan.generator: "
+                         f"{kind}")
     if kind == "resnet":
         if settings.get("skips") is not None:
             raise ValueError(f"class_gan.skips ({settings['skips']}) is a U-Net setting: set it to 'all' with "
