@@ -494,8 +494,9 @@ def test_params_with_a_wrong_type_stop_every_stage_naming_the_key(scratch, key, 
         value = "everywhere"
     if key == ("translation", "class_gan", "skips") and isinstance(value, int):
         value = "some"  # a whole number of skips is one of the allowed kinds
-    if key[:3] == ("translation", "class_gan", "iterations") and value is None:
-        value = "twelve"  # null (the preset's length) is one of the allowed kinds
+    if (key[:3] == ("translation", "class_gan", "iterations") or key[-1] == "translation.class_gan.iterations") \
+            and value is None:
+        value = "twelve"  # null (the preset's length) is one of the allowed kinds, in a recipe too
     CASES["cli: params with one value of a wrong type"] += 1
     path = write_params(scratch, set_key(BASE, key, value))
     code, err = run_cli(["pairs", "--params", str(path), "--tiles", "absent.parquet", "--out", str(scratch / "never")])
