@@ -57,7 +57,7 @@ from vtgen.io.images import labelled_sheet, read_tiles, write_png
 from vtgen.io.params import model_settings, validate_params, with_recipe
 from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
 from vtgen.stages.generate import translate
-from vtgen.stages.score import mean_over_classes
+from vtgen.stages.score import KID_SUBSETS, kid_subset_size, mean_over_classes
 from vtgen.stages.train import (build_conditioning, build_guide, build_referee, load_pair_data, objective_settings,
                                 output_settings, pairs_in, resolve_conditioning, resolve_objective, train_translator, with_frame_views)
 from translation_quality import parse_variant  # the same name:key=value;... variants (benchmarks/ is on sys.path)
@@ -203,10 +203,9 @@ def classwise_kid(features: torch.Tensor, classes: np.ndarray, real: torch.Tenso
     values, stds = [], []
     for name in sorted(set(classes)):
         a, b = real[torch.from_numpy(real_classes == name)], features[torch.from_numpy(classes == name)]
-        smaller = min(len(a), len(b))
-        if smaller < 2:
+        if min(len(a), len(b)) < 2:
             continue
-        mean, std = kid(a, b, subsets=50, subset_size=max(2, smaller // 2) if smaller >= 4 else smaller)
+        mean, std = kid(a, b, subsets=KID_SUBSETS, subset_size=kid_subset_size(a, b))
         values.append(mean)
         stds.append(std)
     return mean_over_classes(values, stds)

@@ -400,6 +400,13 @@ def _interval_from_share(value: float, count: int) -> tuple[float, float]:
     return wilson_interval(value, count) if count > 0 and not math.isnan(value) else (math.nan, math.nan)
 
 
+def kid_subset_size(*sets) -> int:
+    """KID's subset size for these sets: half the smallest (at least 2), so that the subsets differ and their
+    spread means something; the smallest whole when it has fewer than 4 rows."""
+    smaller = min(len(s) for s in sets)
+    return max(2, smaller // 2) if smaller >= 4 else smaller
+
+
 def _set_metrics(reference: dict, candidate: dict, fid_resamples: int,
                  seed: int) -> dict[tuple[str, str], tuple[float, float, float]]:
     """{(view, metric): (value, low, high)} of one candidate set against the reference set; ``reference`` and
@@ -420,9 +427,7 @@ def _set_metrics(reference: dict, candidate: dict, fid_resamples: int,
         real, fake = reference[view], candidate[view]
 
         def kid_value():
-            # subsets of half the smaller set, so that the subsets differ and their spread means something
-            smaller = min(len(real), len(fake))
-            mean, std = dist.kid(real, fake, subsets=KID_SUBSETS, subset_size=max(2, smaller // 2) if smaller >= 4 else smaller)
+            mean, std = dist.kid(real, fake, subsets=KID_SUBSETS, subset_size=kid_subset_size(real, fake))
             return mean, mean - 1.96 * std, mean + 1.96 * std
 
         record(view, "kid", kid_value)
@@ -576,10 +581,9 @@ def classwise_kid_differences(direction: str, per_class: dict, seed: int) -> pd.
                     continue
                 for view in [v for v in reference if v != "spectrum"]:
                     real, a, b = reference[view], generated[view], base[view]
-                    smaller = min(len(real), len(a), len(b))
                     try:
                         mean, std = dist.paired_kid_difference(real, a, b, subsets=KID_SUBSETS, seed=seed,
-                                                               subset_size=max(2, smaller // 2) if smaller >= 4 else smaller)
+                                                               subset_size=kid_subset_size(real, a, b))
                     except ValueError:
                         continue
                     found.setdefault((scope, view, baseline), []).append((mean, std, len(a), len(b), len(real)))
@@ -611,10 +615,9 @@ def paired_differences(direction: str, reference: dict, candidates: dict, fid_re
                 continue
             for view in [v for v in reference if v != "spectrum"]:
                 real, a, b = reference[view], generated[view], base[view]
-                smaller = min(len(real), len(a), len(b))
                 try:
                     mean, std = dist.paired_kid_difference(real, a, b, subsets=KID_SUBSETS,
-                                                           subset_size=max(2, smaller // 2) if smaller >= 4 else smaller)
+                                                           subset_size=kid_subset_size(real, a, b))
                     kid_row = (mean, mean - 1.96 * std, mean + 1.96 * std)
                     fid_row = dist.paired_fid_difference(real, a, b, fid_resamples, seed)
                 except ValueError:
