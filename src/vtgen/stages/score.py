@@ -570,23 +570,13 @@ def classwise_kid_differences(direction: str, per_class: dict, seed: int) -> pd.
     out of that pair's mean."""
     found: dict = {}
     for name, sets in per_class.items():
-        reference = sets["reference"]
-        for key, generated in sets.items():
-            if key == "reference" or key[0] != "generated":
+        for scope, baseline, view, real, a, b in _generated_against_baselines(sets["reference"], sets):
+            try:
+                mean, std = dist.paired_kid_difference(real, a, b, subsets=KID_SUBSETS, seed=seed,
+                                                       subset_size=kid_subset_size(real, a, b))
+            except ValueError:
                 continue
-            scope = key[1]
-            for baseline in BASELINES:
-                base = sets.get((baseline, "-"))
-                if base is None:
-                    continue
-                for view in [v for v in reference if v != "spectrum"]:
-                    real, a, b = reference[view], generated[view], base[view]
-                    try:
-                        mean, std = dist.paired_kid_difference(real, a, b, subsets=KID_SUBSETS, seed=seed,
-                                                               subset_size=kid_subset_size(real, a, b))
-                    except ValueError:
-                        continue
-                    found.setdefault((scope, view, baseline), []).append((mean, std, len(a), len(b), len(real)))
+            found.setdefault((scope, view, baseline), []).append((mean, std, len(a), len(b), len(real)))
     rows = []
     for (scope, view, baseline), items in found.items():
         means, stds, n, n_base, n_ref = zip(*items)
@@ -606,27 +596,34 @@ def paired_differences(direction: str, reference: dict, candidates: dict, fid_re
     mean +- 1.96 std as the KID rows). A difference whose interval lies below 0 says generated beats that
     baseline beyond the noise of this comparison. ``candidates``: (candidate, scope) -> view -> features."""
     rows = []
-    for (kind, scope), generated in candidates.items():
-        if kind != "generated":
+    for scope, baseline, view, real, a, b in _generated_against_baselines(reference, candidates):
+        try:
+            mean, std = dist.paired_kid_difference(real, a, b, subsets=KID_SUBSETS,
+                                                   subset_size=kid_subset_size(real, a, b))
+            kid_row = (mean, mean - 1.96 * std, mean + 1.96 * std)
+            fid_row = dist.paired_fid_difference(real, a, b, fid_resamples, seed)
+        except ValueError:
+            continue
+        for metric, (value, low, high) in (("kid", kid_row), ("fid", fid_row)):
+            rows.append({"direction": direction, "scope": scope, "view": view, "metric": metric,
+                         "baseline": baseline, "value": value, "low": low, "high": high, "n": len(a),
+                         "n_baseline": len(b), "n_reference": len(real)})
+    return pd.DataFrame(rows, columns=DIFFERENCE_COLUMNS)
+
+
+def _generated_against_baselines(reference: dict, sets: dict):
+    """(scope, baseline, view, reference features, generated features, baseline features) for every generated set
+    of ``sets`` ((candidate, scope) -> view -> features) and each trivial baseline (BASELINES) it holds, per
+    feature view of ``reference`` (view -> features; the spectrum is not a feature view)."""
+    for key, generated in sets.items():
+        if not isinstance(key, tuple) or key[0] != "generated":
             continue
         for baseline in BASELINES:
-            base = candidates.get((baseline, "-"))
+            base = sets.get((baseline, "-"))
             if base is None:
                 continue
             for view in [v for v in reference if v != "spectrum"]:
-                real, a, b = reference[view], generated[view], base[view]
-                try:
-                    mean, std = dist.paired_kid_difference(real, a, b, subsets=KID_SUBSETS,
-                                                           subset_size=kid_subset_size(real, a, b))
-                    kid_row = (mean, mean - 1.96 * std, mean + 1.96 * std)
-                    fid_row = dist.paired_fid_difference(real, a, b, fid_resamples, seed)
-                except ValueError:
-                    continue
-                for metric, (value, low, high) in (("kid", kid_row), ("fid", fid_row)):
-                    rows.append({"direction": direction, "scope": scope, "view": view, "metric": metric,
-                                 "baseline": baseline, "value": value, "low": low, "high": high, "n": len(a),
-                                 "n_baseline": len(b), "n_reference": len(real)})
-    return pd.DataFrame(rows, columns=DIFFERENCE_COLUMNS)
+                yield key[1], baseline, view, reference[view], generated[view], base[view]
 
 
 def _pooled_generated(sets: dict):
