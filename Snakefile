@@ -56,6 +56,7 @@ for _stage in stages(config, "main") + stages(config, "studies"):
         output: [directory(p) if p in _spec["directories"] else p for p in _spec["outputs"]]
         params: command=_spec["command"], **_spec["params"]
         threads: _spec["threads"]
+        localrule: _spec["local"]
         wildcard_constraints: **_spec["constraints"]
         shell: "{params.command}"
 

@@ -121,6 +121,10 @@ def run_variant(params, pairs, splits, direction, overrides, seed, iterations, t
     result = train_translator(train, settings, run, direction, "all", progress=False, conditioning=conditioning,
                               guide=guide, validation=validation if referee is not None else None, referee=referee)
     seconds = time.perf_counter() - started
+    if referee is not None:  # which snapshot select_every kept, and the referee's FID at each scoring
+        scores = {row["step"]: round(row["val_fid"], 1) for row in result.history if "val_fid" in row}
+        print(f"# select_every: kept step {(result.selected or {}).get('step', result.steps)} of {result.steps}; "
+              f"referee FID by step {scores}", flush=True)
     inputs, input_classes = context["test_inputs"], context["test_input_classes"]
     labels = conditioning.labels(list(input_classes)) if conditioning.needs_labels else None
     results = []

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import copy
+import json
 import re
 import subprocess
 import sys
@@ -69,8 +70,31 @@ def test_snakemake_rule_expands_other_stages_wildcards_and_keeps_its_own(default
         "--out data/generated/t2v")
     assert rule["params"]["translation_scope"] == ["all", "denim"]
     train = snakemake_rule(by_name("train"), params)
-    assert train["params"]["presets_translation_preset"] == params["presets"]["fast"]
+    assert train["inputs"][0] == "data/settings/{direction}"  # its params values, one file per direction
     assert train["threads"] == params["translation"]["threads"]
+    settings = snakemake_rule(by_name("settings"), params)
+    assert settings["params"] == {} and settings["inputs"][-1] == ".vtgen/params/settings/{direction}.json"
+    assert settings["local"] and not train["local"]  # a job of a second: never a cluster job
+
+
+def test_a_direction_s_settings_change_only_with_its_own_values(default_params, tmp_path):
+    params = copy.deepcopy(default_params)
+    params["translation"]["class_gan"]["upsample"] = {"v2t": "transpose", "t2v": "resize"}
+    pipeline.write_params_records(params, tmp_path)
+    records = {d: (tmp_path / f".vtgen/params/settings/{d}.json").read_text() for d in ("v2t", "t2v")}
+    settings = {d: json.loads(text) for d, text in records.items()}
+    assert settings["t2v"]["translation"]["class_gan"]["upsample"] == "resize"
+    assert settings["v2t"]["translation"]["class_gan"]["upsample"] == "transpose"
+    assert settings["v2t"]["translation"]["conditioning"] == params["translation"]["conditioning"]["v2t"]
+    assert settings["v2t"]["preset"] == params["presets"]["fast"]
+
+    params["translation"]["class_gan"]["upsample"]["t2v"] = "transpose"  # T2V's value alone changes
+    pipeline.write_params_records(params, tmp_path)
+    assert (tmp_path / ".vtgen/params/settings/v2t.json").read_text() == records["v2t"]
+    assert (tmp_path / ".vtgen/params/settings/t2v.json").read_text() != records["t2v"]
+    params["translation"]["class_gan"]["r1"] = 5  # a value both directions read
+    pipeline.write_params_records(params, tmp_path)
+    assert (tmp_path / ".vtgen/params/settings/v2t.json").read_text() != records["v2t"]
 
 
 @pytest.mark.slow

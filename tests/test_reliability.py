@@ -77,7 +77,8 @@ def test_dvc_push_then_pull_into_an_empty_workspace_and_cache_restores_every_out
     project = dvc_project
     lock = yaml.safe_load((project / "dvc.lock").read_text())["stages"]
     outs = sorted(out["path"] for stage in lock.values() for out in stage["outs"])
-    assert outs == ["data/generated/v2t", "data/ingest", "data/pairs", "data/raw/synthetic", "data/roi", "models/v2t/all"]
+    assert outs == ["data/generated/v2t", "data/ingest", "data/pairs", "data/raw/synthetic", "data/roi", "data/settings/v2t",
+                    "models/v2t/all"]
     before = {out: snapshot(project / out) for out in outs}
     status = ["dvc", "status", "generate@v2t", "--with-deps", "--json"]
     assert json.loads(run(status, project).stdout) == {}
@@ -90,7 +91,7 @@ def test_dvc_push_then_pull_into_an_empty_workspace_and_cache_restores_every_out
         shutil.rmtree(project / out)
     shutil.rmtree(project / ".dvc" / "cache")
     gone = json.loads(run(status, project).stdout)
-    assert set(gone) == {"render", "ingest", "roi", "pairs", "train@v2t-all", "generate@v2t"}  # DVC sees them missing
+    assert set(gone) == {"render", "ingest", "roi", "pairs", "settings@v2t", "train@v2t-all", "generate@v2t"}  # DVC sees them missing
 
     run(["dvc", "pull", "generate@v2t", "--with-deps"], project)
     assert json.loads(run(status, project).stdout) == {}
@@ -335,11 +336,12 @@ def test_a_write_error_without_a_file_name_is_given_the_output_folder(tmp_path):
 # The SLURM profile: what a dry run plans, with the executor plugin installed
 
 def planned_jobs(text: str) -> list[dict]:
-    """Jobs of a `snakemake -n` listing: rule, wildcards, threads, resources, input."""
+    """Jobs of a `snakemake -n` listing: rule, wildcards, threads, resources, input, local (run by Snakemake itself)."""
     jobs = []
     for line in text.splitlines():
-        if match := re.match(r"^(?:local)?rule (\w+):$", line):
-            jobs.append({"rule": match[1], "wildcards": {}, "threads": 1, "resources": {}, "input": []})
+        if match := re.match(r"^(local)?rule (\w+):$", line):
+            jobs.append({"rule": match[2], "wildcards": {}, "threads": 1, "resources": {}, "input": [],
+                         "local": bool(match[1])})
         elif jobs and (match := re.match(r"^    (\w+): (.*)$", line)):
             key, value = match.groups()
             if key == "wildcards":
@@ -366,7 +368,7 @@ def test_slurm_profile_dry_run_plans_parallel_training_jobs(tmp_path):
     for job in jobs:
         by_rule.setdefault(job["rule"], []).append(job)
     assert {rule: len(j) for rule, j in by_rule.items()} == {
-        "render": 1, "ingest": 1, "roi": 1, "pairs": 1, "train": 6, "generate": 2, "score": 1, "classify": 2,
+        "render": 1, "ingest": 1, "roi": 1, "pairs": 1, "settings": 2, "train": 6, "generate": 2, "score": 1, "classify": 2,
         "report": 1, "all": 1}
 
     training = by_rule["train"]
@@ -382,7 +384,7 @@ def test_slurm_profile_dry_run_plans_parallel_training_jobs(tmp_path):
     profile = yaml.safe_load((REPO / "workflow/profiles/slurm/config.yaml").read_text())["set-resources"]
     threads = {"render": 2, "ingest": 2, "roi": 2, "train": params["translation"]["threads"]}
     for rule, jobs_of_rule in by_rule.items():
-        for job in jobs_of_rule if rule != "all" else []:
+        for job in jobs_of_rule if rule not in ("all", "settings") else []:  # local rules: no SLURM job
             asked = tuple(str(eval(str(profile[rule][key]), {"attempt": 1})) for key in ("mem_mb", "runtime"))
             assert (job["resources"]["mem_mb"], job["resources"]["runtime"], job["threads"]) == \
                 (*asked, threads.get(rule, 1)), rule

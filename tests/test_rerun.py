@@ -29,6 +29,7 @@ from conftest import ENV, REPO, run
 
 pytestmark = pytest.mark.e2e
 
+SETTINGS = {"settings@v2t", "settings@t2v"}
 TRAIN = {"train@v2t-all", "train@t2v-all"}
 GENERATE = {"generate@v2t", "generate@t2v"}
 CLASSIFY = {"classify@visual", "classify@tactile"}
@@ -42,12 +43,12 @@ CASES = [
     ("classify.epochs", 3, CLASSIFY, CLASSIFY | {"score", "report", "all"}),  # score reads classify's encoder
     ("score.batch_size", 64, {"score"}, {"score", "report", "all"}),
     ("generate.train_share", 0.25, GENERATE, FROM_GENERATE),
-    ("translation.log_every", 3, TRAIN | {"report"}, FROM_TRAIN),
-    ("translation.device", "cpu", TRAIN | GENERATE | CLASSIFY | {"report"}, FROM_TRAIN),
-    ("presets.fast.iterations", 12, TRAIN, FROM_TRAIN),
+    ("translation.log_every", 3, SETTINGS | {"report"}, SETTINGS | FROM_TRAIN),
+    ("translation.device", "cpu", SETTINGS | GENERATE | CLASSIFY | {"report"}, SETTINGS | FROM_TRAIN),
+    ("presets.fast.iterations", 12, SETTINGS, SETTINGS | FROM_TRAIN),
     ("presets.paper.ngf", 16, set(), set()),  # a preset that translation.preset does not select
     ("pairing.seed", 1, {"pairs"}, FROM_PAIRS),
-    ("roi.size", 24, {"roi"} | TRAIN, {"roi"} | FROM_PAIRS),  # a model records its ROI rule
+    ("roi.size", 24, {"roi"} | SETTINGS, {"roi"} | SETTINGS | FROM_PAIRS),  # a model records its ROI rule
     ("synthetic.seed", 1, {"render"}, EVERYTHING),
 ]
 
@@ -140,4 +141,31 @@ def test_one_parameter_reruns_exactly_the_stages_that_depend_on_it(finished, key
 def test_after_restoring_the_parameters_nothing_is_left_to_do(finished):
     project, _ = finished
     assert "Nothing to be done" in run(["snakemake", "-n"], project).stdout
+    assert dvc_changed(project) == set()
+
+
+def test_one_direction_s_value_retrains_that_direction_only_in_both_tools(finished, tmp_path):
+    """A per-direction value ({v2t: x, t2v: y}) changed for T2V: Snakemake plans T2V's settings and training only;
+    DVC reruns both settings jobs (it reads whole sections), finds V2T's file unchanged and skips V2T's training."""
+    source, params = finished
+    project = tmp_path / "project"
+    shutil.copytree(source, project, symlinks=True)
+    run(["git", "add", "-A"], project)  # dvclive logs training into a repository with a first commit
+    run(["git", "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "finished run"], project)
+    edited = copy.deepcopy(params)
+    edited["translation"]["conditioning"]["t2v"] = "none"
+    assert params["translation"]["conditioning"]["t2v"] != "none"
+    (project / "params.yaml").write_text(yaml.safe_dump(edited, sort_keys=False))
+    v2t_model = (project / "models/v2t/all/generator.pt").read_bytes()
+
+    jobs, by_params = snakemake_jobs(run(["snakemake", "-n"], project).stdout)
+    assert jobs == {"settings@t2v", "train@t2v-all"} | FROM_GENERATE - {"generate@v2t"}
+    assert by_params == {"settings@t2v"}
+
+    reproduced = run(["dvc", "repro", "report"], project).stdout
+    ran = set(re.findall(r"Running stage '([^']+)'", reproduced))
+    assert {"settings@v2t", "settings@t2v", "train@t2v-all"} <= ran, reproduced[-3000:]
+    assert "train@v2t-all" not in ran and "generate@v2t" not in ran, reproduced[-3000:]
+    assert (project / "models/v2t/all/generator.pt").read_bytes() == v2t_model
+    assert json.loads((project / "models/t2v/all/train.json").read_text())["conditioning"] == "none"
     assert dvc_changed(project) == set()

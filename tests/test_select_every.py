@@ -115,7 +115,8 @@ def test_off_adds_no_settings_key_a_value_may_be_given_per_direction_and_train_j
     assert record["step"] == 2 and record["val_fid"] == 2.0 and record["val_fid_by_step"] == {2: 2.0, 4: 5.0}
     no_validation = train_translator(data, settings, RUN, "v2t", "all", progress=False)
     assert selection_record(settings, no_validation, None) == {
-        "every": 2, "step": 4, "reason": "the last step's generator (no validation pairs to select by)"}
+        "every": 2, "step": 4, "reason": "the last step's generator (nothing to select by, or no selection step was reached)"}
+    assert "training inputs (no validation split)" in selection_record(settings, result, None)["reason"]
 
 
 def test_the_report_names_the_step_whose_generator_was_kept():
@@ -128,14 +129,29 @@ def test_the_report_names_the_step_whose_generator_was_kept():
     assert table["kept because"].tolist()[0] == chosen["reason"]
 
 
-def test_without_validation_pairs_the_referee_is_not_built_and_the_log_says_why(capsys):
-    from vtgen.stages.train import build_referee
+def test_without_validation_pairs_the_referee_translates_a_sample_of_training_inputs_and_says_so(capsys):
+    from vtgen.stages.train import build_referee, SELECTION_INPUTS_PER_CLASS
     data = rendered_class_pairs(4, 32, seed=0)
-    assert build_referee(dict(SETTINGS, select_every=0), data, data, CLASSIFY, seed=0) is None
-    assert build_referee(dict(SETTINGS, select_every=250), data, None, CLASSIFY, seed=0) is None
-    assert "no validation split to select by; the run keeps the last step's generator" in capsys.readouterr().out
-    referee = build_referee(dict(SETTINGS, select_every=250), data, data, CLASSIFY, seed=0)
-    assert referee is not None and len(referee.inputs) == len(data.inputs)
+    validation = rendered_class_pairs(2, 32, seed=1)
+    assert build_referee(dict(SETTINGS, select_every=0), data, validation, CLASSIFY, seed=0) is None
+    referee = build_referee(dict(SETTINGS, select_every=250), data, validation, CLASSIFY, seed=0)
+    assert referee is not None and torch.equal(referee.inputs, validation.inputs)
+
+    sampled = build_referee(dict(SETTINGS, select_every=250), data, None, CLASSIFY, seed=0)
+    assert "no validation split" in capsys.readouterr().out
+    per_class = {name: sampled.classes.count(name) for name in set(sampled.classes)}
+    pools = {name: len(pool) for name, pool in data.input_pool.items()}
+    assert per_class == {name: min(size, SELECTION_INPUTS_PER_CLASS) for name, size in pools.items()}
+    for image, name in zip(sampled.inputs, sampled.classes):  # each a training input of its own class, none repeated
+        assert any(torch.equal(image, data.pool_images[i]) for i in data.input_pool[name])
+    assert len(distinct_images(sampled.inputs)) == len(sampled.inputs)
+    again = build_referee(dict(SETTINGS, select_every=250), data, None, CLASSIFY, seed=0)
+    assert torch.equal(again.inputs, sampled.inputs)  # the same sample at the same seed
+
+    one_class = PairData(data.inputs[:1], data.targets[:1], data.classes[:1], data.aligned[:1], data.pool_images,
+                         {data.classes[0]: data.input_pool[data.classes[0]]})
+    assert build_referee(dict(SETTINGS, select_every=250), one_class, None, CLASSIFY, seed=0) is None
+    assert "fewer than two classes" in capsys.readouterr().out
 
 
 # ---------------------------------------------------------------- capacity auto's judge (capacity.class_signal)

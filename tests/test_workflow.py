@@ -19,12 +19,12 @@ import yaml
 from conftest import ENV, REPO, make_project, run, tiny_params
 
 pytestmark = pytest.mark.e2e
-STAGES = ["render", "ingest", "roi", "pairs", "train", "generate", "score", "classify", "report"]
+STAGES = ["render", "ingest", "roi", "pairs", "settings", "train", "generate", "score", "classify", "report"]
 TIMED = ["data/raw/synthetic", "data/ingest", "data/roi", "data/pairs", "models/v2t/all", "models/t2v/all",
          "data/generated/v2t", "data/generated/t2v", "data/scores", "data/classify/visual", "data/classify/tactile"]
 REPORT_OUTPUTS = ("reports/figures, reports/index.html, reports/metrics.json, reports/plots/training.csv, "
                   "reports/summary.md, reports/timings.json")
-OUTPUTS = {"data/raw/synthetic", "data/ingest", "data/roi", "data/pairs", "models/v2t/all", "models/t2v/all",
+OUTPUTS = {"data/raw/synthetic", "data/ingest", "data/roi", "data/pairs", "data/settings/v2t", "data/settings/t2v", "models/v2t/all", "models/t2v/all",
            "data/generated/v2t", "data/generated/t2v", "data/scores", "data/classify/visual", "data/classify/tactile",
            REPORT_OUTPUTS}
 

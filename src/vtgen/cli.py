@@ -57,6 +57,12 @@ def _pairs(args, params) -> None:
     run_pairing(args.tiles, params["pairing"], args.out)
 
 
+def _settings(args, params) -> None:
+    from vtgen.stages.settings import run_settings
+
+    run_settings(params, args.direction, args.out)
+
+
 def _train(args, params) -> None:
     from vtgen.stages.train import run_train
 
@@ -167,6 +173,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--manifest", required=True, help="manifest.parquet from the ingest stage")
     stage("pairs", _pairs, "assign splits by source and build V2T/T2V pair tables").add_argument(
         "--tiles", required=True, help="tiles.parquet from the roi stage")
+    settings = stage("settings", _settings, "write the params values one direction's training reads, resolved")
+    settings.add_argument("--direction", required=True, choices=list(DIRECTIONS))
     train = stage("train", _train, "train the conditional GAN of one direction and translation.scope entry")
     train.add_argument("--direction", required=True, choices=list(DIRECTIONS))
     train.add_argument("--scope", required=True, help="'all' or a class name listed in translation.scope")
@@ -245,7 +253,7 @@ def _add_tool_commands(sub) -> None:
     translate.set_defaults(func=_translate)
 
 
-PIPELINE_COMMANDS = {"render", "ingest", "roi", "pairs", "train", "generate", "score", "classify", "report", "study",
+PIPELINE_COMMANDS = {"render", "ingest", "roi", "pairs", "settings", "train", "generate", "score", "classify", "report", "study",
                      "frontier", "stability", "studies-report"}
 
 
@@ -274,7 +282,8 @@ def run_stage(args, params) -> None:
         job, inputs = _declared_job(args, params)  # records read params.yaml as written, as DVC does
         args.func(args, with_recipe(params))
         out = Path(args.out)
-        if out.is_dir() and args.stage not in ("report", "studies-report"):  # pages: reports/ holds declared files only
+        # not reports/ (declared files only) nor a settings folder (its content alone decides whether training reruns)
+        if out.is_dir() and args.stage not in ("report", "studies-report", "settings"):
             record = {"stage": args.stage, "seconds": round(time.perf_counter() - started, 2),
                       "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), **peak_memory()}
             (out / "timing.json").write_text(json.dumps(record) + "\n")

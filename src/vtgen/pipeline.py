@@ -25,7 +25,7 @@ from pathlib import Path
 import yaml
 
 from vtgen.core.domain import DIRECTIONS, MODALITIES
-from vtgen.io.params import SYNTHETIC_PATH
+from vtgen.io.params import SYNTHETIC_PATH, direction_settings
 from vtgen.io.provenance import PACKAGE_ROOT, code_files
 
 WILDCARD = re.compile(r"\{(\w+)\}")
@@ -37,6 +37,11 @@ class Stage:
     ``params`` are dotted params.yaml keys (``presets.${translation.preset}`` resolves the preset);
     ``metrics`` and ``plots`` are small outputs versioned in git, not in the DVC cache; ``threads``
     is the params key that sets the job's cores; ``reads`` are non-Python files the code reads.
+    ``record_by`` (only ``direction``) makes the params record per job: it holds
+    :func:`vtgen.io.params.direction_settings` of the job's direction, not the whole sections, so Snakemake reruns
+    only the job whose direction's values changed (DVC, reading the sections, reruns every job of the stage, whose
+    unchanged outputs then rerun nothing after them). ``local``: a job of a second that Snakemake runs itself, never
+    as a cluster job.
     Study stages keep their outputs out of the DVC cache: most projects never run them, and a
     never-run cached output would make every plain ``dvc pull`` and ``dvc exp apply`` fail."""
 
@@ -50,6 +55,8 @@ class Stage:
     plots: dict = field(default_factory=dict)
     threads: str | None = None
     reads: tuple[str, ...] = ()
+    record_by: str | None = None
+    local: bool = False
     pipeline: str = "main"
     doc: str = ""
 
@@ -78,12 +85,17 @@ STAGES: tuple[Stage, ...] = (
     Stage("pairs", "vtgen.stages.pairs", "vtgen pairs --params params.yaml --tiles data/roi/tiles.parquet --out data/pairs",
           inputs=("data/roi",), outputs=("data/pairs",), params=("pairing",),
           doc="Assign train/val/test by source and write the V2T and T2V pair tables."),
+    Stage("settings", "vtgen.stages.settings",
+          "vtgen settings --params params.yaml --direction {direction} --out data/settings/{direction}",
+          inputs=(), outputs=("data/settings/{direction}",),
+          params=("translation", "presets.${translation.preset}", "recipes.${translation.recipe}", "roi"), record_by="direction", local=True,
+          doc="Write the params values one direction's training reads, per-direction values resolved (train depends on it)."),
     Stage("train", "vtgen.stages.train",
           "vtgen train --params params.yaml --direction {direction} --scope {scope} --pairs data/pairs "
           "--tiles data/roi/tiles.parquet --out models/{direction}/{scope}",
-          # data/ingest: the md5s of the frames that class_gan.views crops again
-          inputs=("data/pairs", "data/roi", "data/ingest"), outputs=("models/{direction}/{scope}",),
-          params=("translation", "presets.${translation.preset}", "recipes.${translation.recipe}", "roi"), threads="translation.threads",
+          # data/ingest: the md5s of the frames that class_gan.views crops again; data/settings: its params values
+          inputs=("data/settings/{direction}", "data/pairs", "data/roi", "data/ingest"), outputs=("models/{direction}/{scope}",),
+          threads="translation.threads",
           doc="Train the conditional GAN of one direction for one scope entry ('all' or a class)."),
     Stage("generate", "vtgen.stages.generate",
           "vtgen generate --params params.yaml --direction {direction} --pairs data/pairs --models models/{direction} "
@@ -315,9 +327,11 @@ def snakemake_rule(stage: Stage, params: dict, root: Path | None = None) -> dict
         "inputs": inputs + code_deps(stage, root) + [params_record(stage)],
         "outputs": outputs,
         "directories": [p for p in stage.outputs if not Path(p).suffix],
-        "params": {key.replace(".", "_").replace("${", "").replace("}", ""): param_value(params, key)
-                   for key in stage.params},
+        # a per-job record (record_by) holds the values; the rule's own params would hold every direction's
+        "params": {} if stage.record_by else {key.replace(".", "_").replace("${", "").replace("}", ""):
+                                               param_value(params, key) for key in stage.params},
         "threads": param_value(params, stage.threads) if stage.threads else 1,
+        "local": stage.local,
         "constraints": {name: "|".join(re.escape(v) for v in values[name]) for name in own},
         "command": _command_for(stage.command),
     }
@@ -326,9 +340,14 @@ def snakemake_rule(stage: Stage, params: dict, root: Path | None = None) -> dict
 PARAMS_RECORDS = Path(".vtgen") / "params"
 
 
-def params_record(stage: Stage) -> str:
-    """The file holding the params values ``stage`` reads, a Snakemake input (see :func:`write_params_records`)."""
-    return (PARAMS_RECORDS / f"{stage.name}.json").as_posix()
+def params_record(stage: Stage, item: dict[str, str] | None = None) -> str:
+    """The file holding the params values ``stage`` reads, a Snakemake input (see :func:`write_params_records`):
+    one per stage, or with ``record_by`` one per value of that wildcard (given in ``item``, else left as the
+    wildcard, as the Snakemake rule names it)."""
+    if stage.record_by is None:
+        return (PARAMS_RECORDS / f"{stage.name}.json").as_posix()
+    value = (item or {}).get(stage.record_by, "{" + stage.record_by + "}")
+    return (PARAMS_RECORDS / stage.name / f"{value}.json").as_posix()
 
 
 def write_params_records(params: dict, root: Path = Path(".")) -> None:
@@ -338,14 +357,14 @@ def write_params_records(params: dict, root: Path = Path(".")) -> None:
     (``dvc repro``) do not have: it would then call the outputs of a run on other data up to date.
     A record is an input like any file, so a changed value reruns the stage whoever made its outputs.
     """
-    import json
-
+    values = wildcard_values(params)
     for stage in stages(params, "main") + stages(params, "studies"):
-        path = root / params_record(stage)
-        text = json.dumps({key: param_value(params, key) for key in stage.params}, sort_keys=True) + "\n"
-        if not path.is_file() or path.read_text() != text:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_text(text)
+        for item in ([{stage.record_by: v} for v in values[stage.record_by]] if stage.record_by else [None]):
+            path = root / params_record(stage, item)
+            text = params_text(stage, params, item)
+            if not path.is_file() or path.read_text() != text:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_text(text)
 
 
 def outputs(params: dict, pipeline: str = "main") -> list[str]:
@@ -424,10 +443,13 @@ def jobs(params: dict, pipeline: str = "main") -> list[Job]:
     return ordered
 
 
-def params_text(stage: Stage, params: dict) -> str:
-    """The params values ``stage`` reads, as the text of its params record."""
+def params_text(stage: Stage, params: dict, item: dict[str, str] | None = None) -> str:
+    """The params values ``stage`` reads, as the text of its params record; with ``record_by``, those of the job
+    whose wildcards are ``item`` (:func:`vtgen.io.params.direction_settings`)."""
     import json
 
+    if stage.record_by is not None:
+        return json.dumps(direction_settings(params, item[stage.record_by]), sort_keys=True) + "\n"
     return json.dumps({key: param_value(params, key) for key in stage.params}, sort_keys=True) + "\n"
 
 
@@ -436,7 +458,7 @@ def input_hashes(job: Job, params: dict, hasher) -> dict[str, str | None]:
     import hashlib
 
     hashes = {path: hasher.hash(path) for path in job.inputs}
-    hashes["params"] = hashlib.md5(params_text(job.stage, params).encode()).hexdigest()
+    hashes["params"] = hashlib.md5(params_text(job.stage, params, job.wildcards).encode()).hexdigest()
     return hashes
 
 
@@ -555,7 +577,7 @@ def reconcile(params: dict, root: str | Path = ".") -> list[str]:
                     lines.append(f"vtgen: {job.name}: {problem}; it runs again")
                 rerun.update(job.outputs)
                 continue
-            newest = max((t for p in (*job.inputs, params_record(job.stage)) if (t := _snakemake_mtime(p))),
+            newest = max((t for p in (*job.inputs, params_record(job.stage, job.wildcards)) if (t := _snakemake_mtime(p))),
                          default=0)
             if any((_snakemake_mtime(p) or 0) < newest for p in job.outputs):
                 stamp = max(time.time_ns(), stamp + 1000)

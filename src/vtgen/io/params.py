@@ -14,6 +14,8 @@ from typing import Any
 import jsonschema
 import yaml
 
+from vtgen.core.domain import DIRECTIONS
+
 SCHEMA_PATH = Path(__file__).with_name("params.schema.yaml")  # package data: ships with every install
 SYNTHETIC_PATH = "data/raw/synthetic"
 
@@ -202,6 +204,26 @@ def with_recipe(params: dict) -> dict:
 def model_settings(params: dict) -> dict:
     """The preset block that translation.preset names: network and training settings."""
     return params["presets"][params["translation"]["preset"]]
+
+
+def for_direction(value: Any, direction: str) -> Any:
+    """``value`` as ``direction`` reads it: a value given per direction (a mapping of exactly v2t and t2v) becomes
+    ``direction``'s; mappings are walked; anything else is returned as it is."""
+    if isinstance(value, dict):
+        if set(value) == set(DIRECTIONS):
+            return for_direction(value[direction], direction)
+        return {key: for_direction(item, direction) for key, item in value.items()}
+    return value
+
+
+def direction_settings(params: dict, direction: str) -> dict:
+    """Every params value the train stage of ``direction`` reads: the ``translation`` section with the recipe
+    applied and each per-direction value as ``direction``'s, the preset block it names, and ``roi``. Two
+    directions' settings differ only where params gives them different values, so the settings stage's record of
+    one direction stays byte-identical when only the other's values change."""
+    applied = with_recipe(params)
+    return {"translation": for_direction(applied["translation"], direction), "preset": model_settings(applied),
+            "roi": applied["roi"]}
 
 
 def load_params(path: str | Path = "params.yaml") -> dict:

@@ -64,6 +64,7 @@ VAL_WORSE_FACTOR = 1.5  # final validation L1 at most 1.5 x the untrained genera
 VAL_WORSE_MARGIN = 0.25  # ... or that plus 0.25 on [-1, 1], whichever is larger; checked only after
 GUIDE_SEED_OFFSET = 7919  # class_gan.semantic's classifier seed = translation.seed + this (not a classify.seeds entry)
 REFEREE_SEED_OFFSET = 104729  # class_gan.select_every's referee classifier seed = translation.seed + this
+SELECTION_INPUTS_PER_CLASS = 6  # training inputs of each class select_every translates when there is no validation split
 MIN_VAL_CHECK_STEPS = 22  # steps, when BatchNorm's running statistics (momentum 0.1) are >= 90% from training
 CHECKPOINT_FIELDS = ("fingerprint", "step", "history", "seconds", "baseline", *STATE_KEYS, "sampler_rng", "torch_rng")
 CHANGED = {"params": "the training parameters (preset, seed, precision)", "data": "the training pairs",
@@ -1054,17 +1055,39 @@ def _real_only_referee(data: PairData, validation: PairData, classify: dict, see
                          seed + REFEREE_SEED_OFFSET)
 
 
+def training_sample(data: PairData, per_class: int, seed: int) -> tuple[torch.Tensor, list[str]]:
+    """Up to ``per_class`` distinct training inputs of each class (``data.input_pool``, drawn with ``seed``) and
+    their class names: what ``select_every`` translates when the pairs have no validation split."""
+    sampler = torch.Generator().manual_seed(seed)
+    rows, names = [], []
+    for name in sorted(data.input_pool):
+        pool = data.input_pool[name]
+        picked = pool[torch.randperm(len(pool), generator=sampler)[:per_class]]
+        rows.append(picked)
+        names += [name] * len(picked)
+    return data.pool_images[torch.cat(rows)] if rows else data.pool_images[:0], names
+
+
 def build_referee(settings: dict, data: PairData, validation: PairData | None, classify: dict,
                   seed: int) -> Referee | None:
     """``class_gan.select_every``'s judge of snapshots (:func:`vtgen.core.referee.train_referee`: a classifier of
     the target modality trained on the distinct training targets, seeded with ``seed`` + :data:`REFEREE_SEED_OFFSET`,
-    scoring the translated validation inputs); None when the setting is 0 or absent, or without validation pairs."""
+    scoring the translated validation inputs, or without a validation split :func:`training_sample`'s training
+    inputs: class pairs tie no input to a target, so the FID of translated training inputs still measures the
+    outputs' distribution); None when the setting is 0 or absent, or with fewer than two classes to sample."""
     if not settings.get("select_every"):
         return None
     if validation is None:
-        print(f"class_gan.select_every: {settings['select_every']} is set, but the pairs have no validation split "
-              f"to select by; the run keeps the last step's generator (train.json: selection)")
-        return None
+        inputs, classes = training_sample(data, SELECTION_INPUTS_PER_CLASS, seed + REFEREE_SEED_OFFSET)
+        if len(set(classes)) < 2:
+            print(f"class_gan.select_every: {settings['select_every']} is set, but there is no validation split and "
+                  f"fewer than two classes of training inputs to select by; the run keeps the last step's generator")
+            return None
+        referee = train_referee(data.targets, data.classes, inputs, classes, classify, seed + REFEREE_SEED_OFFSET)
+        print(f"class_gan.select_every: no validation split; referee classifier trained on {len(referee.reference)} "
+              f"training targets; every {settings['select_every']} steps the FID of {len(inputs)} translated "
+              f"training inputs ({SELECTION_INPUTS_PER_CLASS} or fewer per class)")
+        return referee
     referee = _real_only_referee(data, validation, classify, seed)
     print(f"class_gan.select_every: referee classifier trained on {len(referee.reference)} training targets; "
           f"every {settings['select_every']} steps the validation FID of {len(referee.inputs)} translated inputs")
@@ -1093,12 +1116,13 @@ def selection_record(settings: dict, result: TrainResult, validation: PairData |
     if not every:
         return {"every": 0, "step": result.steps, "reason": "the last step's generator (class_gan.select_every 0)"}
     if result.selected is None:
-        why = "no validation pairs" if validation is None else "no selection step was reached"
-        return {"every": every, "step": result.steps, "reason": f"the last step's generator ({why} to select by)"}
+        return {"every": every, "step": result.steps,
+                "reason": "the last step's generator (nothing to select by, or no selection step was reached)"}
     scores = {r["step"]: round(r["val_fid"], 3) for r in result.history if "val_fid" in r}
+    inputs = "validation inputs" if validation is not None else "training inputs (no validation split)"
     return {"every": every, "step": result.selected["step"], "val_fid": round(result.selected["val_fid"], 3),
             "val_fid_by_step": scores,
-            "reason": "the snapshot with the lowest classifier-view FID of its translated validation inputs"}
+            "reason": f"the snapshot with the lowest classifier-view FID of its translated {inputs}"}
 
 
 def _summary(result: TrainResult, data: PairData, validation: PairData | None, settings: dict, run: dict,
