@@ -97,10 +97,12 @@ def test_a_resumed_run_selects_as_an_uninterrupted_one(tmp_path):
 def test_off_adds_no_settings_key_a_value_may_be_given_per_direction_and_train_json_says_which_step(default_params):
     from vtgen.io.params import ParamsError, validate_params
     params = copy.deepcopy(default_params)
-    assert params["translation"]["class_gan"]["select_every"] == 0
+    assert params["translation"]["class_gan"]["select_every"] == {"v2t": 0, "t2v": 250}  # T2V selects by default
+    assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v")["select_every"] == 250
+    params["translation"]["class_gan"]["select_every"] = 0
     plain = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v")
     plain_v2t = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")  # the defaults differ by direction
-    assert "select_every" not in plain  # so the default's checkpoint keys are those of the code before the switch
+    assert "select_every" not in plain  # so 0's checkpoint keys are those of the code before the switch
     params["translation"]["class_gan"]["select_every"] = {"v2t": 0, "t2v": 500}
     validate_params(params)
     assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v")["select_every"] == 500
