@@ -28,6 +28,7 @@ import torch
 
 from cluster import ACCOUNT, PARTITION, Unavailable, start_slurm, start_sshd
 from conftest import ENV, REPO, make_project, tiny_params
+from vtgen.pipeline import STAGES
 
 # The site settings of this cluster, given as a user gives them: account and partition for every job on the
 # command line (docs/scaling.md); the profile's per-rule memory and time stay as committed.
@@ -85,6 +86,9 @@ def slurm(tmp_path_factory):
         cluster.stop()
 
 
+LOCAL_RULES = {stage.name for stage in STAGES if stage.local}
+
+
 def planned_jobs(project: Path, env: dict) -> dict[str, dict]:
     """Every job of a dry run with the SLURM profile: {"rule_<name>[_wildcards_<values>]": its resources}, the
     names being the comment the SLURM plugin gives each job."""
@@ -95,7 +99,7 @@ def planned_jobs(project: Path, env: dict) -> dict[str, dict]:
     jobs = {}
     for block in re.split(r"\n(?=(?:local)?rule \w+:)", dry.stdout):
         head = re.match(r"(?:local)?rule (\w+):", block)
-        if not head or head[1] == "all":
+        if not head or head[1] == "all" or head[1] in LOCAL_RULES:  # run by Snakemake itself: no SLURM job
             continue
         wildcards = re.search(r"^\s+wildcards: (.*)$", block, flags=re.M)
         name = f"rule_{head[1]}" + ("_wildcards_" + "_".join(w.split("=", 1)[1] for w in wildcards[1].split(", "))
