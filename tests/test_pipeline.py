@@ -82,7 +82,9 @@ def test_a_direction_s_settings_change_only_with_its_own_values(default_params, 
     params["translation"]["class_gan"]["upsample"] = {"v2t": "transpose", "t2v": "resize"}
     pipeline.write_params_records(params, tmp_path)
     records = {d: (tmp_path / f".vtgen/params/settings/{d}.json").read_text() for d in ("v2t", "t2v")}
-    settings = {d: json.loads(text) for d, text in records.items()}
+    # under translation.recipe auto a record holds the settings of each block auto may choose (fabric sets upsample)
+    assert {d: sorted(json.loads(text)) for d, text in records.items()} == {"v2t": ["fabric", "none"], "t2v": ["fabric", "none"]}
+    settings = {d: json.loads(text)["none"] for d, text in records.items()}
     assert settings["t2v"]["translation"]["class_gan"]["upsample"] == "resize"
     assert settings["v2t"]["translation"]["class_gan"]["upsample"] == "transpose"
     assert settings["v2t"]["translation"]["conditioning"] == params["translation"]["conditioning"]["v2t"]

@@ -1,4 +1,5 @@
-"""translation.recipe: a named block of dotted-key settings applied over params.yaml (io/params.with_recipe)."""
+"""translation.recipe: a named block of dotted-key settings applied over params.yaml (io/params.with_recipe), or
+auto: the fabric block for class pairs of texture photos, else none (io/params.recipe_choice)."""
 
 import argparse
 import copy
@@ -7,8 +8,16 @@ import json
 import pytest
 
 from vtgen.cli import run_stage
-from vtgen.io.params import ParamsError, validate_params, with_recipe
+from PIL import Image
+import numpy as np
+
+from vtgen.cli import data_kind
+from vtgen.core.layout import layout_gap
+from vtgen.io.params import ParamsError, direction_settings, recipe_choice, validate_params, with_recipe
 from vtgen.pipeline import STAGES, params_text
+
+TEXTURES = {"class_pairs_only": True, "layout_gap": 0.13}   # the synthetic fabrics' training photos
+SCENES = {"class_pairs_only": True, "layout_gap": 0.76}     # vt60_subset's object photos
 
 
 def choose(params: dict, recipe: str) -> dict:
@@ -25,8 +34,52 @@ def value_at(params: dict, key: str):
 
 
 def test_none_is_params_as_written(default_params):
-    assert default_params["translation"]["recipe"] == "none"
-    assert with_recipe(default_params) is default_params
+    named = choose(default_params, "none")
+    assert with_recipe(named) is named
+
+
+def test_auto_chooses_fabric_for_class_pairs_of_texture_photos_only(default_params):
+    assert default_params["translation"]["recipe"] == "auto"
+    fabric, none = with_recipe(choose(default_params, "fabric")), choose(default_params, "none")
+    assert with_recipe(default_params, TEXTURES) == fabric
+    for kind in (SCENES, {"class_pairs_only": False, "layout_gap": None}, {"class_pairs_only": True, "layout_gap": None}, None):
+        assert with_recipe(default_params, kind) == none, kind
+    assert recipe_choice(default_params, {"class_pairs_only": True, "layout_gap": 0.4})[0] == "fabric"  # the bound is in
+    assert recipe_choice(default_params, {"class_pairs_only": True, "layout_gap": 0.41})[0] == "none"
+    name, reason = recipe_choice(default_params, SCENES)
+    assert name == "none" and "scenes" in reason and "0.76" in reason
+    # the aligned default (pixel pairs) trains exactly as under recipe none: its settings files are byte-identical
+    pixel = {"class_pairs_only": False, "layout_gap": None}
+    for direction in ("v2t", "t2v"):
+        assert direction_settings(default_params, direction, pixel) == direction_settings(none, direction)
+
+
+def test_the_layout_gap_tells_a_texture_from_a_scene():
+    """gap = sd of the 4 x 4 block means / sd of the pixels (core/layout.py), on known images."""
+    rng = np.random.default_rng(0)
+    stripes = np.tile(np.repeat([0, 255], 2), 16)[None, :].repeat(64, 0).astype(np.uint8)  # period 4 px
+    noise = rng.integers(0, 256, (64, 64), dtype=np.uint8)
+    halves = np.zeros((64, 64), np.uint8)
+    halves[:, 32:] = 255                                                                    # one edge: a layout
+    disc = np.zeros((64, 64), np.uint8)
+    yy, xx = np.mgrid[:64, :64]
+    disc[(yy - 32) ** 2 + (xx - 32) ** 2 < 20 ** 2] = 200                                   # an object on a ground
+    gap = {name: layout_gap(Image.fromarray(a)) for name, a in
+           (("stripes", stripes), ("noise", noise), ("halves", halves), ("disc", disc))}
+    assert gap["stripes"] < 0.01 and gap["noise"] < 0.1        # white noise: about 1 / 16
+    assert gap["halves"] == pytest.approx(1.0) and gap["disc"] > 0.7
+    assert layout_gap(Image.fromarray(np.full((64, 64), 90, np.uint8))) == 0.0
+
+
+def test_auto_reads_the_pairs_summary_and_names_it_when_missing(default_params, tmp_path):
+    args = argparse.Namespace(pairs=str(tmp_path / "pairs"))
+    with pytest.raises(ValueError, match=r"pairs/summary\.json: no pairs summary; translation\.recipe 'auto'"):
+        data_kind(args, default_params)
+    (tmp_path / "pairs").mkdir()
+    (tmp_path / "pairs" / "summary.json").write_text(json.dumps({"data_kind": TEXTURES}))
+    assert data_kind(args, default_params) == TEXTURES
+    assert data_kind(args, choose(default_params, "none")) is None  # a named recipe reads nothing
+    assert data_kind(argparse.Namespace(), default_params) is None   # a stage without pairs
 
 
 @pytest.mark.parametrize("recipe", ["fabric", "quick"])
@@ -79,6 +132,8 @@ def test_the_fabric_recipe_keeps_the_reader_it_was_measured_with(default_params)
     (lambda p: p["recipes"]["fabric"].update({"translation.class_gan.select_every": {"v2t": "often", "t2v": 1}}),
      r"recipes\.fabric\.translation\.class_gan\.select_every\.v2t: 'often' is not of type 'integer'"),
     (lambda p: p["recipes"]["none"].update({"generate.seed": 1}), r"recipes\.none: .* is expected to be empty"),
+    (lambda p: p["recipes"].update(auto={}), r"recipes\.auto: 'auto' is translation\.recipe's choice"),
+    (lambda p: p["recipes"].pop("fabric"), r"translation\.recipe: 'auto' chooses among fabric, none; recipes has no block fabric"),
 ])
 def test_a_bad_recipe_is_refused_naming_the_key(default_params, edit, message):
     params = copy.deepcopy(default_params)
@@ -87,13 +142,15 @@ def test_a_bad_recipe_is_refused_naming_the_key(default_params, edit, message):
         validate_params(params)
 
 
-def test_stages_that_read_translation_depend_on_the_chosen_recipe_only(default_params):
-    """Editing the chosen recipe changes the params record of the settings job of the direction it changes (which
-    training depends on), generate and report; editing another recipe changes no stage's record (so it reruns nothing)."""
-    def records(params: dict) -> dict[str, str]:  # one per stage, and per direction for the settings stage
-        return {s.name + (f"@{d}" if s.record_by else ""): params_text(s, params, {"direction": d})
-                for s in STAGES for d in ("v2t", "t2v")}
+def records(params: dict) -> dict[str, str]:  # one per stage, and per direction for the settings stage
+    return {s.name + (f"@{d}" if s.record_by else ""): params_text(s, params, {"direction": d})
+            for s in STAGES for d in ("v2t", "t2v")}
 
+
+def test_training_depends_on_the_recipes_it_may_apply_only(default_params):
+    """Editing the chosen recipe changes the params record of the settings job of the direction it changes (which
+    training depends on), generate and report; editing another recipe changes no settings record (so no training
+    reruns; generate, report and the studies, which read every block, do)."""
     chosen = choose(default_params, "quick")
     edited_chosen = copy.deepcopy(chosen)
     assert chosen["recipes"]["quick"]["translation.class_gan.r1"] == 240
@@ -104,7 +161,22 @@ def test_stages_that_read_translation_depend_on_the_chosen_recipe_only(default_p
     changed = {name for name in before if before[name] != after[name]}
     assert {"settings@v2t", "generate", "report"} <= changed
     assert not {"settings@t2v", "classify", "score"} & changed
-    assert records(edited_other) == before
+    other = records(edited_other)
+    assert {name for name in before if before[name] != other[name]} == {"generate", "report", "tradeoff_setting",
+                                                                         "experiment", "stability"}
+
+
+def test_under_auto_either_block_it_may_choose_retrains_what_it_sets(default_params):
+    """Snakemake records the settings job before any data exists, so under auto the record holds the settings of
+    both blocks auto may choose: editing the fabric block's V2T value reruns V2T's settings job only; editing the
+    quick block (never chosen by auto) reruns none."""
+    fabric_v2t = copy.deepcopy(default_params)
+    fabric_v2t["recipes"]["fabric"]["translation.class_gan.nce"] = {"v2t": 0.2, "t2v": 0.0}
+    quick = copy.deepcopy(default_params)
+    quick["recipes"]["quick"]["translation.class_gan.r1"] = 120
+    before = records(default_params)
+    assert {n for n, text in records(fabric_v2t).items() if text != before[n] and n.startswith("settings")} == {"settings@v2t"}
+    assert {n for n, text in records(quick).items() if text != before[n] and n.startswith("settings")} == set()
 
 
 def test_a_stage_command_runs_with_the_recipe_applied(default_params, tmp_path, monkeypatch):

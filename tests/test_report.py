@@ -354,7 +354,7 @@ def test_page_helper_autoescapes_html_and_markdown_shows_tags_as_text():
 
 
 def _minimal_context(table: dict) -> dict:
-    run = {"code_version": "c", "built": "b", "python": "3", "torch": "2", "cpus": 1, "preset": "fast", "recipe": "none", "scope": ["all"]}
+    run = {"code_version": "c", "built": "b", "python": "3", "torch": "2", "cpus": 1, "preset": "fast", "recipe": "none", "recipe_reason": "as set", "scope": ["all"]}
     return {"dataset": {"source": "s", "path": "p"}, "ingest": {}, "pairs": {}, "run": run, "params_yaml": "",
             "directions": ["v2t"], "figures": {"losses": False, "scores": False, "grid_v2t": False,
                                                "classification": False},

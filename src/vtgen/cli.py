@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from vtgen.core.domain import DIRECTIONS
-from vtgen.io.params import ParamsError, load_params, with_recipe
+from vtgen.io.params import AUTO_RECIPE, ParamsError, load_params, recipe_choice, with_recipe
 
 
 def _render(args, params) -> None:
@@ -60,6 +60,9 @@ def _pairs(args, params) -> None:
 def _settings(args, params) -> None:
     from vtgen.stages.settings import run_settings
 
+    raw = load_params(args.params)
+    chosen, reason = recipe_choice(raw, data_kind(args, raw))
+    print(f"settings {args.direction}: recipe '{chosen}' ({reason})")
     run_settings(params, args.direction, args.out)
 
 
@@ -97,7 +100,10 @@ def _classify(args, params) -> None:
 def _report(args, params) -> None:
     from vtgen.stages.report import run_report
 
-    run_report(params, args.ingest, args.pairs, args.models, args.generated, args.scores, args.classify, args.out)
+    raw = load_params(args.params)
+    _, reason = recipe_choice(raw, data_kind(args, raw))
+    run_report(params, args.ingest, args.pairs, args.models, args.generated, args.scores, args.classify, args.out,
+               recipe_reason=reason)
 
 
 def _study(args, params) -> None:
@@ -175,6 +181,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--tiles", required=True, help="tiles.parquet from the roi stage")
     settings = stage("settings", _settings, "write the params values one direction's training reads, resolved")
     settings.add_argument("--direction", required=True, choices=list(DIRECTIONS))
+    settings.add_argument("--pairs", required=True, help="folder written by the pairs stage (translation.recipe auto reads it)")
     train = stage("train", _train, "train the conditional GAN of one direction and translation.scope entry")
     train.add_argument("--direction", required=True, choices=list(DIRECTIONS))
     train.add_argument("--scope", required=True, help="'all' or a class name listed in translation.scope")
@@ -273,6 +280,17 @@ def debugging() -> bool:
     return os.environ.get("VTGEN_DEBUG", "").strip().lower() in ("1", "true", "yes", "on")
 
 
+def data_kind(args, params) -> dict | None:
+    """What ``translation.recipe: auto`` reads (:func:`vtgen.io.params.recipe_choice`): the ``data_kind`` of the
+    pairs summary in the stage's ``--pairs`` folder; None when the recipe is named or the stage reads no pairs."""
+    if params["translation"]["recipe"] != AUTO_RECIPE or not getattr(args, "pairs", None):
+        return None
+    path = Path(args.pairs) / "summary.json"
+    if not path.is_file():
+        raise ValueError(f"{path}: no pairs summary; translation.recipe 'auto' chooses from it (run the pairs stage first)")
+    return json.loads(path.read_text())["data_kind"]
+
+
 def run_stage(args, params) -> None:
     """Run a pipeline stage under the project's run lock and write its wall time into its output folder."""
     from vtgen.io.runlock import run_lock
@@ -280,7 +298,7 @@ def run_stage(args, params) -> None:
     started = time.perf_counter()
     with run_lock(f"vtgen {args.stage}"):
         job, inputs = _declared_job(args, params)  # records read params.yaml as written, as DVC does
-        args.func(args, with_recipe(params))
+        args.func(args, with_recipe(params, data_kind(args, params)))
         out = Path(args.out)
         # not reports/ (declared files only) nor a settings folder (its content alone decides whether training reruns)
         if out.is_dir() and args.stage not in ("report", "studies-report", "settings"):

@@ -25,7 +25,7 @@ from pathlib import Path
 import yaml
 
 from vtgen.core.domain import DIRECTIONS, MODALITIES
-from vtgen.io.params import SYNTHETIC_PATH, direction_settings
+from vtgen.io.params import SYNTHETIC_PATH, settings_record
 from vtgen.io.provenance import PACKAGE_ROOT, code_files
 
 WILDCARD = re.compile(r"\{(\w+)\}")
@@ -38,7 +38,7 @@ class Stage:
     ``metrics`` and ``plots`` are small outputs versioned in git, not in the DVC cache; ``threads``
     is the params key that sets the job's cores; ``reads`` are non-Python files the code reads.
     ``record_by`` (only ``direction``) makes the params record per job: it holds
-    :func:`vtgen.io.params.direction_settings` of the job's direction, not the whole sections, so Snakemake reruns
+    :func:`vtgen.io.params.settings_record` of the job's direction, not the whole sections, so Snakemake reruns
     only the job whose direction's values changed (DVC, reading the sections, reruns every job of the stage, whose
     unchanged outputs then rerun nothing after them). ``local``: a job of a second that Snakemake runs itself, never
     as a cluster job.
@@ -86,9 +86,10 @@ STAGES: tuple[Stage, ...] = (
           inputs=("data/roi",), outputs=("data/pairs",), params=("pairing",),
           doc="Assign train/val/test by source and write the V2T and T2V pair tables."),
     Stage("settings", "vtgen.stages.settings",
-          "vtgen settings --params params.yaml --direction {direction} --out data/settings/{direction}",
-          inputs=(), outputs=("data/settings/{direction}",),
-          params=("translation", "presets.${translation.preset}", "recipes.${translation.recipe}", "roi"), record_by="direction", local=True,
+          "vtgen settings --params params.yaml --direction {direction} --pairs data/pairs --out data/settings/{direction}",
+          # data/pairs: the data kind translation.recipe auto chooses from
+          inputs=("data/pairs",), outputs=("data/settings/{direction}",),
+          params=("translation", "presets.${translation.preset}", "recipes", "roi"), record_by="direction", local=True,
           doc="Write the params values one direction's training reads, per-direction values resolved (train depends on it)."),
     Stage("train", "vtgen.stages.train",
           "vtgen train --params params.yaml --direction {direction} --scope {scope} --pairs data/pairs "
@@ -101,7 +102,7 @@ STAGES: tuple[Stage, ...] = (
           "vtgen generate --params params.yaml --direction {direction} --pairs data/pairs --models models/{direction} "
           "--out data/generated/{direction}",
           inputs=("data/pairs", "data/roi", "models/{direction}/{scope}"), outputs=("data/generated/{direction}",),
-          params=("generate", "translation.scope", "translation.device", "recipes.${translation.recipe}"),
+          params=("generate", "translation.scope", "translation.device", "translation.recipe", "recipes"),
           doc="Translate the test split and generate.train_share of the training inputs of one direction."),
     Stage("score", "vtgen.stages.score",
           "vtgen score --params params.yaml --pairs data/pairs --generated data/generated --classify data/classify "
@@ -124,7 +125,7 @@ STAGES: tuple[Stage, ...] = (
           outputs=("reports/index.html", "reports/summary.md", "reports/figures", "reports/timings.json"),
           metrics=("reports/metrics.json",),
           plots={"reports/plots/training.csv": {"x": "step", "y": "loss_g_l1", "title": "generator L1 loss by model"}},
-          params=("dataset", "translation", "recipes.${translation.recipe}"), reads=("src/vtgen/io/templates",),
+          params=("dataset", "translation", "recipes"), reads=("src/vtgen/io/templates",),
           doc="The run's report: reports/index.html, summary.md, metrics.json, plots and figures."),
     # studies: outside the main job (`snakemake studies`; for DVC, `vtgen workflow --studies` first, then
     # `dvc repro workflow/studies/dvc.yaml`)
@@ -132,7 +133,7 @@ STAGES: tuple[Stage, ...] = (
           "vtgen study --params params.yaml --kind tradeoff --name {setting} --pairs data/pairs "
           "--out data/studies/tradeoff/{setting}",
           inputs=("data/pairs", "data/roi"), outputs=("data/studies/tradeoff/{setting}",),
-          params=("studies.tradeoff", "translation", "presets.${translation.preset}", "recipes.${translation.recipe}", "classify"),
+          params=("studies.tradeoff", "translation", "presets.${translation.preset}", "recipes", "classify"),
           threads="translation.threads", pipeline="studies",
           doc="Train, generate and score one trade-off setting for every studies.tradeoff seed."),
     Stage("frontier", "vtgen.studies.study",
@@ -144,11 +145,11 @@ STAGES: tuple[Stage, ...] = (
           "vtgen study --params params.yaml --kind experiments --name {name} --pairs data/pairs "
           "--capacity data/studies/frontier --out data/studies/experiments/{name}",
           inputs=("data/pairs", "data/roi", "data/studies/frontier"), outputs=("data/studies/experiments/{name}",),
-          params=("studies.experiments", "translation", "presets.${translation.preset}", "recipes.${translation.recipe}", "classify"),
+          params=("studies.experiments", "translation", "presets.${translation.preset}", "recipes", "classify"),
           threads="translation.threads", pipeline="studies",
           doc="One row of the paper's experiment matrix (studies.experiments.runs)."),
     Stage("stability", "vtgen.studies.stability", "vtgen stability --params params.yaml --out data/studies/stability",
-          inputs=(), outputs=("data/studies/stability",), params=("translation", "presets.${translation.preset}", "recipes.${translation.recipe}"),
+          inputs=(), outputs=("data/studies/stability",), params=("translation", "presets.${translation.preset}", "recipes"),
           pipeline="studies",
           doc="Train at the edges of the parameter space; each case ends finite or with a clear message."),
     Stage("studies_report", "vtgen.studies.report",
@@ -445,11 +446,11 @@ def jobs(params: dict, pipeline: str = "main") -> list[Job]:
 
 def params_text(stage: Stage, params: dict, item: dict[str, str] | None = None) -> str:
     """The params values ``stage`` reads, as the text of its params record; with ``record_by``, those of the job
-    whose wildcards are ``item`` (:func:`vtgen.io.params.direction_settings`)."""
+    whose wildcards are ``item`` (:func:`vtgen.io.params.settings_record`)."""
     import json
 
     if stage.record_by is not None:
-        return json.dumps(direction_settings(params, item[stage.record_by]), sort_keys=True) + "\n"
+        return json.dumps(settings_record(params, item[stage.record_by]), sort_keys=True) + "\n"
     return json.dumps({key: param_value(params, key) for key in stage.params}, sort_keys=True) + "\n"
 
 

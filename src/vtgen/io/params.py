@@ -144,8 +144,8 @@ def _override_problems(params: dict, validator: jsonschema.Draft202012Validator,
     return problems
 
 
-# What a recipe may set: the stages that read these keys (train, generate, report, the studies) also depend on
-# ``recipes.<translation.recipe>``. The keys that shape the workflow itself (which jobs exist, their threads) or
+# What a recipe may set: the stages that read these keys (settings, generate, report, the studies) also depend on
+# ``recipes``. The keys that shape the workflow itself (which jobs exist, their threads) or
 # that other stages read are not a recipe's to change.
 RECIPE_SECTIONS = ("translation.", "generate.", "preset.")
 RECIPE_FORBIDDEN = ("translation.preset", "translation.recipe", "translation.scope", "translation.device",
@@ -153,12 +153,21 @@ RECIPE_FORBIDDEN = ("translation.preset", "translation.recipe", "translation.sco
 
 
 def _recipe_problems(params: dict, validator: jsonschema.Draft202012Validator) -> list[str]:
-    """``translation.recipe`` must name a block of ``recipes``; each block sets existing translation, generate or
+    """``translation.recipe`` must name a block of ``recipes`` (or be ``auto``, which needs the blocks it chooses
+    among); each block sets existing translation, generate or
     preset keys to values the schema accepts."""
     recipes, chosen = params["recipes"], params["translation"]["recipe"]
     problems = []
-    if chosen not in recipes:
-        problems.append(f"translation.recipe: '{chosen}' is not a block of recipes (defined: {', '.join(recipes)})")
+    if AUTO_RECIPE in recipes:
+        problems.append(f"recipes.{AUTO_RECIPE}: '{AUTO_RECIPE}' is translation.recipe's choice from the data, not a block name")
+    if chosen == AUTO_RECIPE:
+        missing = [name for name in AUTO_CHOICES if name not in recipes]
+        if missing:
+            problems.append(f"translation.recipe: 'auto' chooses among {', '.join(AUTO_CHOICES)}; recipes has no "
+                            f"block {', '.join(missing)}")
+    elif chosen not in recipes:
+        problems.append(f"translation.recipe: '{chosen}' is not a block of recipes (defined: {', '.join(recipes)}, "
+                        f"or {AUTO_RECIPE})")
     for name, overrides in recipes.items():
         allowed = {}
         for key, value in overrides.items():
@@ -191,14 +200,44 @@ def set_keys(params: dict, overrides: dict) -> dict:
     return merged
 
 
-def with_recipe(params: dict) -> dict:
+# translation.recipe auto: the fabric recipe when every training pair is a class pair and the training photos are
+# textures (layout gap at most this; vtgen.core.layout: 0.13 on the synthetic fabrics, 0.17 on real ViTac cloth,
+# 0.76 on vt60_subset's objects), else none (benchmarks/README.md, Thirty-ninth round)
+AUTO_RECIPE = "auto"
+AUTO_CHOICES = ("fabric", "none")
+TEXTURE_LAYOUT_GAP = 0.4
+
+
+def recipe_choice(params: dict, data_kind: dict | None) -> tuple[str, str]:
+    """The block of ``recipes`` a run applies, and why. ``translation.recipe`` as set unless ``auto``, which reads
+    ``data_kind`` (the pairs stage's summary.json): ``fabric`` when every training pair of both directions is a
+    class pair and the training photos' median layout gap is at most ``TEXTURE_LAYOUT_GAP``, else ``none``;
+    without ``data_kind`` (a stage before pairing, or one that reads no pairs) ``none``."""
+    chosen = params["translation"]["recipe"]
+    if chosen != AUTO_RECIPE:
+        return chosen, "as set"
+    if data_kind is None:
+        return "none", "auto: no pairs summary read by this stage"
+    if not data_kind.get("class_pairs_only"):
+        return "none", "auto: some training pairs are pixel or name pairs (pix2pix trains; the recipes are for class pairs)"
+    gap = data_kind.get("layout_gap")
+    if gap is None:
+        return "none", "auto: no training photos to tell textures from scenes"
+    if gap <= TEXTURE_LAYOUT_GAP:
+        return "fabric", (f"auto: class pairs only, and the training photos are textures (layout gap {gap:.2f} "
+                          f"<= {TEXTURE_LAYOUT_GAP})")
+    return "none", f"auto: class pairs only, but the training photos are scenes (layout gap {gap:.2f} > {TEXTURE_LAYOUT_GAP})"
+
+
+def with_recipe(params: dict, data_kind: dict | None = None) -> dict:
     """The settings the stages run with: validated ``params`` with the block of ``recipes`` that
-    ``translation.recipe`` names applied over them (``none``: unchanged). ``translation.recipe`` keeps the name, so
-    applying it twice changes nothing."""
-    overrides = params["recipes"][params["translation"]["recipe"]]
-    if not overrides:
+    :func:`recipe_choice` picks applied over them (``none``: unchanged values). ``translation.recipe`` becomes the
+    chosen block's name, so applying it twice changes nothing."""
+    chosen, _ = recipe_choice(params, data_kind)
+    if chosen == params["translation"]["recipe"] and not params["recipes"][chosen]:
         return params
-    return validate_params(set_keys(params, overrides), source=f"params.yaml with recipe '{params['translation']['recipe']}'")
+    named = set_keys(params, {"translation.recipe": chosen})
+    return validate_params(set_keys(named, params["recipes"][chosen]), source=f"params.yaml with recipe '{chosen}'")
 
 
 def model_settings(params: dict) -> dict:
@@ -216,14 +255,23 @@ def for_direction(value: Any, direction: str) -> Any:
     return value
 
 
-def direction_settings(params: dict, direction: str) -> dict:
+def direction_settings(params: dict, direction: str, data_kind: dict | None = None) -> dict:
     """Every params value the train stage of ``direction`` reads: the ``translation`` section with the recipe
-    applied and each per-direction value as ``direction``'s, the preset block it names, and ``roi``. Two
-    directions' settings differ only where params gives them different values, so the settings stage's record of
-    one direction stays byte-identical when only the other's values change."""
-    applied = with_recipe(params)
+    applied (:func:`with_recipe`) and each per-direction value as ``direction``'s, the preset block it names, and
+    ``roi``. Two directions' settings differ only where params gives them different values, so the settings
+    stage's record of one direction stays byte-identical when only the other's values change."""
+    applied = with_recipe(params, data_kind)
     return {"translation": for_direction(applied["translation"], direction), "preset": model_settings(applied),
             "roi": applied["roi"]}
+
+
+def settings_record(params: dict, direction: str) -> dict:
+    """What ``direction``'s settings depend on in params alone (Snakemake's record of the settings job, taken before
+    any data exists): :func:`direction_settings`, or under ``translation.recipe: auto`` those of each block auto may
+    choose, so that editing either block reruns the job and a value for the other direction does not."""
+    if params["translation"]["recipe"] != AUTO_RECIPE:
+        return direction_settings(params, direction)
+    return {name: direction_settings(set_keys(params, {"translation.recipe": name}), direction) for name in AUTO_CHOICES}
 
 
 def load_params(path: str | Path = "params.yaml") -> dict:

@@ -15,6 +15,10 @@ when the two frames have the same size and the tiles the same tile index and box
 Every other target tile gets an input drawn at random from the same class and split (``class``),
 as the authors did for ViTac. When one modality is missing altogether, the pair tables are empty
 and the summary says why; the splits are written all the same.
+
+The summary also says what kind of data the training split is (``data_kind``): whether every training pair
+of both directions is a class pair, and if so the training photos' layout gap (:mod:`vtgen.core.layout`: texture
+or scene), which ``translation.recipe: auto`` reads (:func:`vtgen.io.params.recipe_choice`).
 """
 
 from __future__ import annotations
@@ -25,12 +29,16 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from PIL import Image
+
 from vtgen.core.domain import DIRECTIONS
+from vtgen.core.layout import layout_gap
 from vtgen.io.images import atomic_output_dir
 from vtgen.io.tables import read_table
 from vtgen.io.tables import PAIR_COLUMNS, PAIR_KINDS, SPLIT_COLUMNS
 
 SPLITS = ("train", "val", "test")
+LAYOUT_PHOTOS_PER_CLASS = 50  # training photo tiles per class the layout gap is measured on (the first by path)
 TILE_NEEDS = ["tile_path", "image_path", "class", "modality", "split", "source", "group", "pair_key", "tile_index",
               "box_x", "box_y", "box_w", "box_h", "frame_w", "frame_h"]
 
@@ -219,6 +227,11 @@ def run_pairing(tiles_path: str | Path, pairing: dict, out_dir: str | Path) -> d
                                     f"modalities), but {unused} of {len(keyed_targets)} target tiles with a pair key "
                                     f"got a class pair (their partner is missing or in another split)")
         summary["promised_pair_keys"] = promised
+        class_only = translation and all(summary[d]["train"]["pairs"] > 0
+                                         and summary[d]["train"]["class"] == summary[d]["train"]["pairs"] for d in DIRECTIONS)
+        # the photos' layout matters to class pairs only (translation.recipe auto): other data reads no image here
+        summary["data_kind"] = {"class_pairs_only": class_only,
+                                **(photo_layout(tiles) if class_only else {"layout_gap": None, "layout_gap_per_class": {}})}
         summary["groups_in_several_splits"] = leaked_groups(tiles)
         summary["warnings"] = warnings
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
@@ -228,9 +241,28 @@ def run_pairing(tiles_path: str | Path, pairing: dict, out_dir: str | Path) -> d
         counts = ", ".join(f"{s} {v['pairs']} ({v['pixel']} pixel, {v['name']} name, {v['class']} class)"
                            for s, v in summary[direction].items())
         print(f"pairing {direction}: {counts}")
+    kind = summary["data_kind"]
+    if kind["layout_gap"] is not None:
+        print(f"pairing: training photos' layout gap {kind['layout_gap']:.3f} (median over classes; "
+              f"class pairs only: {'yes' if kind['class_pairs_only'] else 'no'})")
     for warning in warnings:
         print(f"  warning: {warning}")
     return summary
+
+
+def photo_layout(tiles: pd.DataFrame) -> dict:
+    """The training photos' layout gap (:func:`vtgen.core.layout.layout_gap`): per class the median over its first
+    ``LAYOUT_PHOTOS_PER_CLASS`` training photo tiles by path, and the median over classes (None without photos)."""
+    photos = tiles[(tiles["modality"] == "visual") & (tiles["split"] == "train")].sort_values("tile_path")
+    per_class = {}
+    for name, part in photos.groupby("class"):
+        gaps = []
+        for path in part["path"].head(LAYOUT_PHOTOS_PER_CLASS):
+            with Image.open(path) as image:
+                gaps.append(layout_gap(image))
+        per_class[str(name)] = round(float(np.median(gaps)), 4)
+    median = round(float(np.median(list(per_class.values()))), 4) if per_class else None
+    return {"layout_gap": median, "layout_gap_per_class": per_class}
 
 
 def leaked_groups(tiles: pd.DataFrame) -> list[str]:

@@ -186,7 +186,7 @@ def run_facts(params: dict) -> dict:
         torch_version = "not installed"
     return {"code_version": code_version(), "built": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
             "python": platform.python_version(), "torch": torch_version, "cpus": os.cpu_count(),
-            "preset": params["translation"]["preset"], "recipe": params["translation"]["recipe"],
+            "preset": params["translation"]["preset"], "recipe": params["translation"]["recipe"], "recipe_reason": "as set",
             "scope": list(params["translation"]["scope"])}
 
 
@@ -367,12 +367,14 @@ def timings_record(timings: pd.DataFrame) -> dict:
 
 
 def run_report(params: dict, ingest_dir, pairs_dir, models_dir, generated_dir, scores_dir, classify_dir,
-               out_dir: str | Path = "reports") -> dict:
+               out_dir: str | Path = "reports", recipe_reason: str = "as set") -> dict:
     """Build index.html, summary.md, metrics.json, timings.json, plots/training.csv and figures/ in
-    ``out_dir`` from the named stage folders only; return the headline metrics."""
+    ``out_dir`` from the named stage folders only; return the headline metrics. ``recipe_reason``: why the run
+    applied its recipe (:func:`vtgen.io.params.recipe_choice`), shown beside its name."""
     inputs = ReportInputs(*(Path(p) for p in (ingest_dir, pairs_dir, models_dir, generated_dir, scores_dir,
                                                classify_dir)))
     data = collect(params, inputs)
+    data["run"]["recipe_reason"] = recipe_reason
     out_dir = Path(out_dir)
     build = out_dir / ".build.tmp"
     shutil.rmtree(build, ignore_errors=True)
