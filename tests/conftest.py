@@ -52,6 +52,7 @@ def tiny_params(**overrides) -> dict:
     params["translation"].update(checkpoint_every=5, log_every=2)
     params["translation"]["capacity"].update(widths=[4, 8], probe_iterations=4, eval_every=4, patience=1)
     params["translation"]["class_gan"]["iterations"] = None  # class pairs train the tiny preset's steps too
+    params["recipes"]["fabric"]["translation.class_gan.iterations"] = None  # also where recipe auto picks fabric
     params["generate"].update(batch_size=8)
     params["classify"].update(size=32, width=0.125, epochs=2, seeds=[0], batch_size=16)
     for section, values in overrides.items():

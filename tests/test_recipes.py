@@ -16,8 +16,8 @@ from vtgen.core.layout import layout_gap
 from vtgen.io.params import ParamsError, direction_settings, recipe_choice, validate_params, with_recipe
 from vtgen.pipeline import STAGES, params_text
 
-TEXTURES = {"class_pairs_only": True, "layout_gap": 0.13}   # the synthetic fabrics' training photos
-SCENES = {"class_pairs_only": True, "layout_gap": 0.76}     # vt60_subset's object photos
+TEXTURES = {"class_pairs_only": True, "classes": 12, "layout_gap": 0.13}  # the synthetic fabrics' training photos
+SCENES = {"class_pairs_only": True, "classes": 10, "layout_gap": 0.76}    # vt60_subset's object photos
 
 
 def choose(params: dict, recipe: str) -> dict:
@@ -42,14 +42,15 @@ def test_auto_chooses_fabric_for_class_pairs_of_texture_photos_only(default_para
     assert default_params["translation"]["recipe"] == "auto"
     fabric, none = with_recipe(choose(default_params, "fabric")), choose(default_params, "none")
     assert with_recipe(default_params, TEXTURES) == fabric
-    for kind in (SCENES, {"class_pairs_only": False, "layout_gap": None}, {"class_pairs_only": True, "layout_gap": None}, None):
+    for kind in (SCENES, {"class_pairs_only": False, "classes": 12, "layout_gap": None}, {**TEXTURES, "layout_gap": None},
+                 {**TEXTURES, "classes": 1}, None):  # pixel pairs, no photos, one cloth, no summary
         assert with_recipe(default_params, kind) == none, kind
-    assert recipe_choice(default_params, {"class_pairs_only": True, "layout_gap": 0.4})[0] == "fabric"  # the bound is in
-    assert recipe_choice(default_params, {"class_pairs_only": True, "layout_gap": 0.41})[0] == "none"
+    assert recipe_choice(default_params, {**TEXTURES, "layout_gap": 0.4})[0] == "fabric"  # the bound is in
+    assert recipe_choice(default_params, {**TEXTURES, "layout_gap": 0.41})[0] == "none"
     name, reason = recipe_choice(default_params, SCENES)
     assert name == "none" and "scenes" in reason and "0.76" in reason
     # the aligned default (pixel pairs) trains exactly as under recipe none: its settings files are byte-identical
-    pixel = {"class_pairs_only": False, "layout_gap": None}
+    pixel = {"class_pairs_only": False, "classes": 12, "layout_gap": None}
     for direction in ("v2t", "t2v"):
         assert direction_settings(default_params, direction, pixel) == direction_settings(none, direction)
 

@@ -211,7 +211,7 @@ TEXTURE_LAYOUT_GAP = 0.4
 def recipe_choice(params: dict, data_kind: dict | None) -> tuple[str, str]:
     """The block of ``recipes`` a run applies, and why. ``translation.recipe`` as set unless ``auto``, which reads
     ``data_kind`` (the pairs stage's summary.json): ``fabric`` when every training pair of both directions is a
-    class pair and the training photos' median layout gap is at most ``TEXTURE_LAYOUT_GAP``, else ``none``;
+    class pair, the training split has two classes or more and the training photos' median layout gap is at most ``TEXTURE_LAYOUT_GAP``, else ``none``;
     without ``data_kind`` (a stage before pairing, or one that reads no pairs) ``none``."""
     chosen = params["translation"]["recipe"]
     if chosen != AUTO_RECIPE:
@@ -220,6 +220,8 @@ def recipe_choice(params: dict, data_kind: dict | None) -> tuple[str, str]:
         return "none", "auto: no pairs summary read by this stage"
     if not data_kind.get("class_pairs_only"):
         return "none", "auto: some training pairs are pixel or name pairs (pix2pix trains; the recipes are for class pairs)"
+    if data_kind.get("classes", 0) < 2:
+        return "none", "auto: one class (the fabric recipe's generators are told the class a reader reads)"
     gap = data_kind.get("layout_gap")
     if gap is None:
         return "none", "auto: no training photos to tell textures from scenes"

@@ -230,7 +230,7 @@ def run_pairing(tiles_path: str | Path, pairing: dict, out_dir: str | Path) -> d
         class_only = translation and all(summary[d]["train"]["pairs"] > 0
                                          and summary[d]["train"]["class"] == summary[d]["train"]["pairs"] for d in DIRECTIONS)
         # the photos' layout matters to class pairs only (translation.recipe auto): other data reads no image here
-        summary["data_kind"] = {"class_pairs_only": class_only,
+        summary["data_kind"] = {"class_pairs_only": class_only, "classes": int(tiles.loc[tiles["split"] == "train", "class"].nunique()),
                                 **(photo_layout(tiles) if class_only else {"layout_gap": None, "layout_gap_per_class": {}})}
         summary["groups_in_several_splits"] = leaked_groups(tiles)
         summary["warnings"] = warnings
