@@ -236,3 +236,25 @@ def test_summary_counts_pair_kinds_and_unused_promised_pairs(tmp_path):
     summary, _ = run_on(tmp_path, broken, min_test_images=0)
     assert summary["promised_pair_keys"] == 9
     assert any("promises pairs" in w and "1 of 10" in w for w in summary["warnings"])
+
+
+@pytest.mark.parametrize("photo, kind", [("stripes", "texture"), ("disc", "scene")])
+def test_the_summary_says_what_kind_of_data_trains(tmp_path, photo, kind):
+    """data_kind (translation.recipe auto reads it): class pairs only, the training classes, and the training photos'
+    median layout gap, measured on the tiles' pixels: low for a stripe texture, high for a disc on a ground."""
+    rng = np.random.default_rng(0)
+    tiles = make_tiles({"a": 10, "b": 10}, aligned=False, tiles_per_image=1)
+    yy, xx = np.mgrid[:32, :32]
+    for path in tiles["path"]:
+        if photo == "stripes":
+            image = (((xx + rng.integers(0, 4)) // 2) % 2 * 200 + rng.integers(0, 30, (32, 32))).astype(np.uint8)
+        else:
+            image = np.where((yy - 16) ** 2 + (xx - 12 - rng.integers(0, 8)) ** 2 < 100, 220, 30).astype(np.uint8)
+        write_image(tmp_path / "roi" / "tiles" / path, image)
+    summary, pairs = run_on(tmp_path, tiles, min_test_images=0)
+    found = summary["data_kind"]
+    assert found["class_pairs_only"] and found["classes"] == 2 and set(found["layout_gap_per_class"]) == {"a", "b"}
+    assert (found["layout_gap"] < 0.1) if kind == "texture" else (found["layout_gap"] > 0.5)
+    # aligned data trains pix2pix: no photo is read, no gap is given
+    aligned, _ = run_on(tmp_path, make_tiles({"a": 10, "b": 10}, tiles_per_image=1), min_test_images=0)
+    assert aligned["data_kind"] == {"class_pairs_only": False, "classes": 2, "layout_gap": None, "layout_gap_per_class": {}}
