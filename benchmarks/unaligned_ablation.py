@@ -29,8 +29,8 @@ here on the real training images of the run with the classify stage's settings):
 
 A variant is ``name:key=value;key=value``; keys are ``translation`` keys (objective, conditioning as one kind
 for this direction), ``class_gan.<key>`` or preset keys, set over the run folder's params.yaml with its recipe
-(``translation.recipe``) applied, except the recipe's step count: ``--iterations`` sets it. SYNTHETIC results
-must be labelled as such.
+(``translation.recipe``; ``auto`` as the run's pairs summary chose) applied, except the recipe's step count:
+``--iterations`` sets it. SYNTHETIC results must be labelled as such.
 ``--truncation 1 0.5 0`` measures each trained generator once per psi its latent codes are scaled by
 (``translate``'s truncation); ``--model <run>/models/v2t/all`` measures a main job's trained generator instead
 of training one; ``--outputs sheets/*.pt`` measures test outputs an earlier ``--sheets`` run saved.
@@ -39,6 +39,7 @@ of training one; ``--outputs sheets/*.pt`` measures test outputs an earlier ``--
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 
@@ -277,7 +278,8 @@ def main() -> None:
     if not args.variant and not args.model and not args.outputs:
         parser.error("give --variant (train and measure), --model (measure a trained model) or --outputs")
     root = Path(args.run).resolve()
-    params = with_recipe(validate_params(yaml.safe_load((root / "params.yaml").read_text())))
+    kind = json.loads((root / "data" / "pairs" / "summary.json").read_text()).get("data_kind")  # what recipe auto reads
+    params = with_recipe(validate_params(yaml.safe_load((root / "params.yaml").read_text())), kind)
     torch.set_num_threads(args.threads)
     pairs = read_table(root / "data" / "pairs" / f"{args.direction}.parquet", PAIR_COLUMNS, "pairs")
     splits = read_table(root / "data" / "pairs" / "splits.parquet", SPLIT_COLUMNS, "splits")
