@@ -824,6 +824,9 @@ def test_the_report_points_to_the_long_recipe_only_where_class_pairs_fall_short_
     assert recipe_advice(data(recipe="fabric")) == []  # the long recipe was used: nothing to point to
     assert recipe_advice(data(objective="pix2pix")) == []  # aligned pairs train pix2pix
     assert recipe_advice(data(gan=(0.15, [0.09, 0.23]))) == []  # within the noise of the realistic level
+    chosen = dict(data(), run={"recipe_reason": "auto: class pairs only, but the training photos are scenes"})
+    assert recipe_advice(chosen) == []  # recipe auto kept none for object photos: the fabric recipe is not for them
+    assert recipe_advice(dict(data(), run={"recipe_reason": "as set"})) == ["V2T"]
     both = data()
     both["models"].append(dict(both["models"][0], direction="t2v"))
     both["classify"]["visual"] = both["classify"]["tactile"]

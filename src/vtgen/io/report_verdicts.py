@@ -156,7 +156,10 @@ def recipe_advice(data: dict) -> list[str]:
     """The directions (upper case, the grid's order) whose GAN-test falls below the realistic one beyond the
     noise (:func:`gan_test_verdicts`: warning) where a model trained the class-pair objective with the default
     settings or the quick recipe (train.json's ``objective`` class_gan, ``recipe`` none or quick): there the report
-    points to params.yaml's longer fabric recipe. Empty otherwise."""
+    points to params.yaml's longer fabric recipe. Empty otherwise, and where ``translation.recipe: auto`` chose
+    none from the data (``data["run"]["recipe_reason"]``: photos of scenes, for which the fabric recipe was not made)."""
+    if (data.get("run") or {}).get("recipe_reason", "as set") != "as set":
+        return []
     plain = {run["direction"] for run in data.get("models") or []
              if (run.get("objective") or {}).get("name") == "class_gan" and run.get("recipe", "none") in ("none", "quick")}
     short = {v["direction"] for v in gan_test_verdicts(data) if v["status"] == "warning"}
