@@ -226,9 +226,9 @@ def recipe_choice(params: dict, data_kind: dict | None) -> tuple[str, str]:
     if gap is None:
         return "none", "auto: no training photos to tell textures from scenes"
     if gap <= TEXTURE_LAYOUT_GAP:
-        return "fabric", (f"auto: class pairs only, and the training photos are textures (layout gap {gap:.2f} "
-                          f"<= {TEXTURE_LAYOUT_GAP})")
-    return "none", f"auto: class pairs only, but the training photos are scenes (layout gap {gap:.2f} > {TEXTURE_LAYOUT_GAP})"
+        return "fabric", (f"auto: class pairs only, and the training photos are textures (layout gap {gap:.2f}, "
+                          f"at most {TEXTURE_LAYOUT_GAP})")
+    return "none", f"auto: class pairs only, but the training photos are scenes (layout gap {gap:.2f}, above {TEXTURE_LAYOUT_GAP})"
 
 
 def with_recipe(params: dict, data_kind: dict | None = None) -> dict:
