@@ -73,9 +73,10 @@ def test_the_layout_gap_tells_a_texture_from_a_scene():
 
 
 def test_auto_reads_the_pairs_summary_and_names_it_when_missing(default_params, tmp_path):
-    args = argparse.Namespace(pairs=str(tmp_path / "pairs"))
+    args = argparse.Namespace(stage="settings", pairs=str(tmp_path / "pairs"))
     with pytest.raises(ValueError, match=r"pairs/summary\.json: no pairs summary; translation\.recipe 'auto'"):
         data_kind(args, default_params)
+    assert data_kind(argparse.Namespace(stage="classify", pairs=str(tmp_path / "pairs")), default_params) is None
     (tmp_path / "pairs").mkdir()
     (tmp_path / "pairs" / "summary.json").write_text(json.dumps({"data_kind": TEXTURES}))
     assert data_kind(args, default_params) == TEXTURES

@@ -280,10 +280,16 @@ def debugging() -> bool:
     return os.environ.get("VTGEN_DEBUG", "").strip().lower() in ("1", "true", "yes", "on")
 
 
+# the commands that read values a recipe sets and are given the pairs folder (the stability study reads none: none)
+RECIPE_COMMANDS = ("settings", "train", "generate", "report", "study")
+
+
 def data_kind(args, params) -> dict | None:
     """What ``translation.recipe: auto`` reads (:func:`vtgen.io.params.recipe_choice`): the ``data_kind`` of the
-    pairs summary in the stage's ``--pairs`` folder; None when the recipe is named or the stage reads no pairs."""
-    if params["translation"]["recipe"] != AUTO_RECIPE or not getattr(args, "pairs", None):
+    pairs summary in the ``--pairs`` folder of a command in ``RECIPE_COMMANDS``; None when the recipe is named or
+    the command reads no recipe value."""
+    if (params["translation"]["recipe"] != AUTO_RECIPE or getattr(args, "stage", None) not in RECIPE_COMMANDS
+            or not getattr(args, "pairs", None)):
         return None
     path = Path(args.pairs) / "summary.json"
     if not path.is_file():
