@@ -119,7 +119,7 @@ def test_damaged_outputs_are_named_and_rebuilt_identical_to_the_undamaged_run(dv
     for path, job in damaged.items():
         assert re.search(rf"^vtgen: {re.escape(job)}: {re.escape(path)} has 10 bytes, \d+ when written; it runs again$",
                          text, flags=re.M), (path, text[-3000:])
-    assert jobs == {"roi", "pairs", "train", "generate", "score", "classify", "report", "all"}
+    assert jobs == {"roi", "pairs", "settings", "train", "generate", "score", "classify", "report", "all"}  # settings reads pairs
 
     run(["snakemake", "--cores", "2"], project)
     after = outputs_snapshot(project)

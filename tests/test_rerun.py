@@ -35,7 +35,7 @@ GENERATE = {"generate@v2t", "generate@t2v"}
 CLASSIFY = {"classify@visual", "classify@tactile"}
 FROM_GENERATE = GENERATE | {"score"} | CLASSIFY | {"report", "all"}
 FROM_TRAIN = TRAIN | FROM_GENERATE
-FROM_PAIRS = {"pairs"} | FROM_TRAIN
+FROM_PAIRS = {"pairs"} | SETTINGS | FROM_TRAIN  # the settings stage reads the pairs summary (recipe auto)
 EVERYTHING = {"render", "ingest", "roi"} | FROM_PAIRS
 
 # dotted key, new value, stages `dvc status` reports (the ones reading the key), jobs `snakemake -n` runs
