@@ -168,7 +168,10 @@ def test_run_train_writes_generator_summary_and_loss_log(tmp_path, monkeypatch):
     (tmp_path / "pairs").mkdir()
     pairs.to_parquet(tmp_path / "pairs/v2t.parquet")
     splits.to_parquet(tmp_path / "pairs/splits.parquet")
-    summary = run_train(tiny_params(), "v2t", "all", "pairs", "models/v2t/all", "ckpt", progress=False)
+    from vtgen.io.params import with_recipe
+
+    # the command line applies the recipe before a stage runs (recipe auto: none without a pairs summary)
+    summary = run_train(with_recipe(tiny_params()), "v2t", "all", "pairs", "models/v2t/all", "ckpt", progress=False)
     out = tmp_path / "models/v2t/all"
     assert {p.name for p in out.iterdir()} == {"generator.pt", "train.json", "dvclive"}
     assert summary["steps"] == 10 and summary["training_pairs"] == 6
