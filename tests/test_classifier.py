@@ -321,6 +321,9 @@ def test_stage_writes_tables_summary_and_plot(tmp_path, monkeypatch):
     assert counts.loc["real+generated"].tolist() == [27, 18, 9]
     assert counts.loc["low-data real"].tolist() == [6, 6, 0]  # round(0.34 * 6) = 2 per class
     assert counts.loc["low-data real+generated"].tolist() == [15, 6, 9]
+    repeats = json.loads((out / "summary.json").read_text())["counts"]["real_repeats"]  # classify.real_share 0.5
+    assert repeats["real+generated"] == {"0": 1, "1": 1}  # 18 real beside 9 generated: already the larger share
+    assert repeats["low-data real+generated"] == {"0": 2, "1": 2}  # 6 real visited twice beside 9 generated
     real = table["setting"] == "real"
     assert table.loc[real, "gan_test_accuracy"].notna().all() and table.loc[~real, "gan_test_accuracy"].isna().all()
     summary = json.loads((out / "summary.json").read_text())
@@ -371,6 +374,38 @@ def test_stage_writes_tables_summary_and_plot(tmp_path, monkeypatch):
     labels = np.array([CLASSES.index(c) for c in test["class"]])
     seed0 = table[(table["setting"] == "real") & (table["seed"] == 0) & (table["epoch"] == 2)]["test_accuracy"].iloc[0]
     assert (predict(encoder, read_tiles(list(test["path"]), 32)).numpy() == labels).mean() == pytest.approx(seed0)
+
+
+def test_real_repeats_keep_the_real_share_of_visits():
+    from vtgen.stages.classify import real_repeats
+
+    assert real_repeats(52, 516, 0.5) == 10  # 520 real visits beside 516 generated
+    assert real_repeats(52, 520, 0.5) == 10 and real_repeats(52, 521, 0.5) == 11  # at least the share
+    assert real_repeats(516, 516, 0.5) == 1 and real_repeats(516, 100, 0.5) == 1  # never fewer than one pass
+    assert real_repeats(10, 30, 0.75) == 9  # 90 real of 120 visits
+    assert real_repeats(52, 516, 0.0) == 1 and real_repeats(52, 0, 0.5) == 1  # share 0 or nothing generated: pooled
+    for real, generated, share in ((52, 516, 0.5), (7, 40, 0.3), (3, 100, 0.9)):
+        r = real_repeats(real, generated, share)
+        assert real * r / (real * r + generated) >= share > real * (r - 1) / (real * (r - 1) + generated)
+
+
+def test_training_set_repeats_the_real_images_and_share_zero_is_the_pooled_set():
+    from vtgen.stages.classify import _training_set
+
+    g = torch.Generator().manual_seed(0)
+    sets = {"train": (torch.randint(0, 256, (12, 3, 8, 8), dtype=torch.uint8, generator=g), torch.arange(12) % 3),
+            "generated": (torch.randint(0, 256, (9, 3, 8, 8), dtype=torch.uint8, generator=g), torch.arange(9) % 3)}
+    subset = torch.tensor([0, 1, 2])
+    pooled_x, pooled_y, real, repeats = _training_set("low-data real+generated", 0, sets, subset, {}, None, 0.0)
+    assert (real, repeats) == (3, 1)
+    assert torch.equal(pooled_x, torch.cat([sets["train"][0][subset], sets["generated"][0]]))  # today's set, bit for bit
+    assert torch.equal(pooled_y, torch.cat([sets["train"][1][subset], sets["generated"][1]]))
+    x, y, real, repeats = _training_set("low-data real+generated", 0, sets, subset, {}, None, 0.5)
+    assert (real, repeats, len(x)) == (3, 3, 18)  # 9 real visits beside 9 generated
+    assert torch.equal(x[:9], sets["train"][0][subset].repeat(3, 1, 1, 1)) and torch.equal(x[9:], sets["generated"][0])
+    assert torch.equal(y, torch.cat([sets["train"][1][subset].repeat(3), sets["generated"][1]]))
+    x, _, real, repeats = _training_set("low-data real", 0, sets, subset, {}, None, 0.5)  # no generated: no repeat
+    assert (real, repeats, len(x)) == (3, 1, 3)
 
 
 def test_stage_refuses_a_generated_training_image_from_a_test_input(tmp_path, monkeypatch):

@@ -125,7 +125,7 @@ def test_run_generate_writes_images_and_a_linked_table(tmp_path, model_dir, monk
     pairs.to_parquet("pairs/v2t.parquet")
     pairs.to_parquet("pairs/t2v.parquet")
     splits.to_parquet("pairs/splits.parquet")
-    params = tiny_params()
+    params = tiny_params(generate={"train_share": 0.5})
     summary = run_generate(params, "v2t", "pairs", "models/v2t", "generated/v2t", progress=False)
     table = pd.read_parquet("generated/v2t/generated.parquet")
     assert summary["scopes"]["all"]["test"] == 2 and summary["scopes"]["all"]["train"] == 4  # train_share 0.5 of 6

@@ -15,6 +15,10 @@ so every setting takes the same optimiser steps and a gain from generated images
 training: at 10% of the real images, 10 epochs of one pass each are a tenth of the steps, and more
 steps alone lifted low-data accuracy more than the generated images did (benchmarks/README.md,
 "Thirty-fifth round"). ``own`` is one pass over the setting's own images (the paper's protocol).
+Beside generated images the real ones are repeated (:func:`real_repeats`) so that at least
+``classify.real_share`` of a ``+generated`` setting's visits are real: pooled as they come, the low-data
+real images were a tenth of the visits and the generated ones drowned them (benchmarks/README.md,
+"Fortieth round"); summary.json's ``counts.real_repeats`` records the repeat per setting and seed.
 
 Generated images of a modality come from the direction that produces it (tactile from v2t,
 visual from t2v); all scope entries' images are used. Only rows generated from training inputs
@@ -388,7 +392,7 @@ def _image_sets(real: pd.DataFrame, generated: pd.DataFrame, classes: list[str],
                       "generated_train": len(gen_train), "generated_test": len(gen_test),
                       "per_class_real_train": real_train["class"].value_counts().sort_index().to_dict(),
                       "per_class_real_test": {c: int((real_test["class"] == c).sum()) for c in classes},
-                      "low_data_real_train": {}}
+                      "low_data_real_train": {}, "real_repeats": {}}
     return sets
 
 
@@ -470,9 +474,19 @@ def choose_policy(plan: dict, runs: dict, sets: dict, per_setting: dict) -> dict
 # ---------------------------------------------------------------- training every setting and seed
 
 
-def _training_set(setting: str, seed: int, sets: dict, subset: torch.Tensor, plan: dict,
-                  real_model) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """The training images and labels of ``setting`` for ``seed`` and how many of them are real."""
+def real_repeats(real: int, generated: int, share: float) -> int:
+    """How often each of ``real`` images is visited per pass beside ``generated`` ones so that at least ``share`` of
+    the visits are real: ``max(1, ceil(share / (1 - share) * generated / real))``; 1 for ``share`` 0 or no
+    generated image (``classify.real_share``)."""
+    if share <= 0 or generated == 0 or real == 0:
+        return 1
+    return max(1, math.ceil(share / (1 - share) * generated / real - 1e-9))
+
+
+def _training_set(setting: str, seed: int, sets: dict, subset: torch.Tensor, plan: dict, real_model,
+                  real_share: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, int, int]:
+    """The training images and labels of ``setting`` for ``seed`` (the real ones repeated :func:`real_repeats`
+    times beside generated ones), how many distinct real images they hold and the repeat count."""
     (train_x, train_y), (gen_x, gen_y) = sets["train"], sets["generated"]
     real_x, real_y = (train_x[subset], train_y[subset]) if setting.startswith("low-data") else (train_x, train_y)
     if setting in ("real+generated", "low-data real+generated"):
@@ -487,7 +501,9 @@ def _training_set(setting: str, seed: int, sets: dict, subset: torch.Tensor, pla
         chosen = torch.from_numpy(generated_policy.generated_subset(
             gen_y.numpy(), item["real_per_class"], item["ratio"], item["filter"], seed, probability,
             plan["confidence"]))
-    return torch.cat([real_x, gen_x[chosen]]), torch.cat([real_y, gen_y[chosen]]), len(real_x)
+    repeats = real_repeats(len(real_x), len(chosen), real_share)
+    return (torch.cat([real_x.repeat(repeats, 1, 1, 1), gen_x[chosen]]),
+            torch.cat([real_y.repeat(repeats), gen_y[chosen]]), len(real_x), repeats)
 
 
 def _train_settings(sets: dict, settings: list[str], plan: dict, cfg: dict, modality: str, num_classes: int, device,
@@ -510,17 +526,21 @@ def _train_settings(sets: dict, settings: list[str], plan: dict, cfg: dict, moda
         sets["counts"]["low_data_real_train"][str(seed)] = len(subset)
         for setting in settings:
             real_run = runs.get(("real", seed), {}).get("run")
-            x, y, real_count = _training_set(setting, seed, sets, subset, plan, real_run and real_run.model)
+            x, y, real_count, repeats = _training_set(setting, seed, sets, subset, plan, real_run and real_run.model,
+                                                      cfg["real_share"])
+            generated = len(x) - real_count * repeats
+            if generated:
+                sets["counts"]["real_repeats"].setdefault(setting, {})[str(seed)] = repeats
             bar.set_description(f"classify {modality}: {setting}, seed {seed}")
-            if setting not in SETTINGS and len(x) == real_count:
+            if setting not in SETTINGS and not generated:
                 runs[(setting, seed)] = dict(runs[("real", seed)], generated=0, seconds=0.0)
                 bar.update(1)
                 continue
             extra = {"gan_test": sets["gan"]} if setting == "real" and len(sets["gan"][0]) else None
             run = _train_one(x, y, sets, cfg, modality, setting, seed, num_classes, device, precision, weights,
                              weights_file, extra, val, bar)
-            runs[(setting, seed)] = {"run": run, "train_images": len(x), "real_images": real_count,
-                                     "generated": len(x) - real_count}
+            runs[(setting, seed)] = {"run": run, "train_images": real_count + generated, "real_images": real_count,
+                                     "generated": generated}
             for name, value in (("train", run.train_images), ("train_seconds", run.train_seconds),
                                 ("norm_seconds", run.norm_seconds), ("eval", run.eval_images),
                                 ("eval_seconds", run.eval_seconds)):
