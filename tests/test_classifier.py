@@ -350,8 +350,10 @@ def test_stage_writes_tables_summary_and_plot(tmp_path, monkeypatch):
     assert confusion.shape == (3, 3) and confusion.sum(axis=1) == pytest.approx([2, 2, 2])
     assert np.trace(confusion) / 6 == pytest.approx(summary["settings"]["real"]["final_mean"], abs=1e-6)
     assert [c["setting"] for c in summary["comparisons"]] == ["real+generated", "low-data real+generated"]
-    for item in summary["comparisons"]:
-        assert item["overlap"] == (item["verdict"] == "within noise (95% intervals overlap)")
+    for item in summary["comparisons"]:  # ranked by the paired interval over the shared test images
+        low, high = item["paired_interval"]
+        assert low <= item["difference"] <= high and item["within_noise"] == (low <= 0 <= high)
+        assert item["within_noise"] == item["verdict"].startswith("within noise (the paired 95% interval includes 0)")
     assert summary["test_images_per_class"] == {c: 2 for c in CLASSES}
     # images per second: every image visit of every setting, seed and epoch, and every image evaluated
     speed = summary["throughput"]

@@ -216,8 +216,8 @@ def final_accuracy_table(final: pd.DataFrame) -> pd.DataFrame:
 
 
 def comparison_table(summary: dict) -> pd.DataFrame | None:
-    """With against without generated images: both final accuracies with 95% intervals, the difference
-    and the classify stage's verdict ("within noise" when the intervals overlap)."""
+    """With against without generated images: both final accuracies with 95% intervals, the difference with
+    its paired 95% interval and the classify stage's verdict ("within noise" when that interval includes 0)."""
     settings, n = summary.get("settings") or {}, (summary.get("counts") or {}).get("real_test", "—")
     rows = []
     for item in summary.get("comparisons") or []:
@@ -226,7 +226,9 @@ def comparison_table(summary: dict) -> pd.DataFrame | None:
                      "accuracy [95%]": interval_cell(a.get("final_mean"), *(a.get("interval") or (None, None))),
                      "against": item["against"],
                      "against: accuracy [95%]": interval_cell(b.get("final_mean"), *(b.get("interval") or (None, None))),
-                     "difference": f"{item['difference']:+.3f}", "n test": n, "verdict": item["verdict"]})
+                     "difference [paired 95%]": f"{item['difference']:+.3f}" + (
+                         " [{:+.3f}, {:+.3f}]".format(*item["paired_interval"]) if item.get("paired_interval") else ""),
+                     "n test": n, "verdict": item["verdict"]})
     return pd.DataFrame(rows) if rows else None
 
 

@@ -65,7 +65,7 @@ def verdict_lines(data: dict) -> list[dict]:
             continue
         n = (summary.get("counts") or {}).get("real_test", "?")
         for item in summary.get("comparisons") or []:
-            add("unresolved" if item.get("overlap") else "ok",
+            add("unresolved" if item.get("within_noise", item.get("overlap")) else "ok",
                 f"{modality} classification, {item['setting']} against {item['against']}: accuracy "
                 f"{item['difference']:+.3f}, {item['verdict']} (n = {n} test images)")
         for setting in entry["at_chance"]:

@@ -193,9 +193,27 @@ def accuracy_by_class(predictions: dict[tuple[str, int], np.ndarray], labels: np
     return pd.DataFrame(rows, columns=BY_CLASS_COLUMNS)
 
 
-def compare_settings(per_setting: dict) -> list[dict]:
-    """With vs without generated images (COMPARISONS): the difference of final mean accuracies and a
-    verdict that ranks them only when their 95% intervals do not overlap."""
+def paired_gains(runs: dict, sets: dict) -> dict[tuple[str, str], tuple[float, float, float]]:
+    """Each COMPARISONS pair's gain on the real test images, paired image by image over the seeds, with its 95%
+    interval (:func:`vtgen.core.generated_policy.paired_difference`: split groups as units, the seeds' spread
+    counted)."""
+    test_y = sets["test"][1].numpy()
+    seeds = sorted({seed for setting, seed in runs if setting == "real"})
+    result = {}
+    for with_generated, without in COMPARISONS:
+        if len(test_y) and all((name, seed) in runs for name in (with_generated, without) for seed in seeds):
+            correct = {name: np.stack([runs[(name, s)]["run"].test_predictions.numpy() == test_y for s in seeds])
+                       for name in (with_generated, without)}
+            result[(with_generated, without)] = generated_policy.paired_difference(
+                correct[with_generated], correct[without], sets["test_groups"])
+    return result
+
+
+def compare_settings(per_setting: dict, paired: dict | None = None) -> list[dict]:
+    """With vs without generated images (COMPARISONS): the difference of final mean accuracies, whether their
+    separate 95% intervals overlap, and a verdict that ranks them only when the paired difference's 95% interval
+    (``paired``, from :func:`paired_gains`) excludes 0, or without it only when the separate intervals do not
+    overlap. Both settings are scored on the same test images, so the paired interval is the narrower, fair one."""
     result = []
     for with_generated, without in COMPARISONS:
         a, b = per_setting.get(with_generated), per_setting.get(without)
@@ -203,10 +221,18 @@ def compare_settings(per_setting: dict) -> list[dict]:
             continue
         overlap = a["interval"][0] <= b["interval"][1] and b["interval"][0] <= a["interval"][1]
         difference = a["final_mean"] - b["final_mean"]
-        verdict = ("within noise (95% intervals overlap)" if overlap
-                   else "generated images help" if difference > 0 else "generated images hurt")
-        result.append({"setting": with_generated, "against": without, "difference": round(difference, 6),
-                       "overlap": overlap, "verdict": verdict})
+        gain = (paired or {}).get((with_generated, without))
+        item = {"setting": with_generated, "against": without, "difference": round(difference, 6), "overlap": overlap}
+        if gain is not None and math.isfinite(gain[1]):
+            item["paired_interval"] = [round(gain[1], 6), round(gain[2], 6)]
+            item["within_noise"] = gain[1] <= 0 <= gain[2]
+            noise = "within noise (the paired 95% interval includes 0)"
+        else:
+            item["within_noise"] = overlap
+            noise = "within noise (95% intervals overlap)"
+        item["verdict"] = (noise if item["within_noise"]
+                           else "generated images help" if difference > 0 else "generated images hurt")
+        result.append(item)
     return result
 
 
@@ -326,7 +352,7 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     encoder = runs[("real", cfg["seeds"][0])]["run"].model
     summary.update(status="ok", chance=1.0 / len(classes), device=str(device), precision={"used": precision, "why": why},
                    counts=sets["counts"], settings=per_setting, skipped=skipped, gan_test=gan_test,
-                   comparisons=compare_settings(per_setting), policy=choose_policy(plan, runs, sets, per_setting),
+                   comparisons=compare_settings(per_setting, paired_gains(runs, sets)), policy=choose_policy(plan, runs, sets, per_setting),
                    real_confusion=[[round(float(v), 6) for v in row] for row in real_confusion],
                    test_images_per_class=sets["counts"]["per_class_real_test"],
                    encoder={"file": "encoder.pt", "setting": "real", "seed": cfg["seeds"][0]},

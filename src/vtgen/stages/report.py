@@ -272,7 +272,7 @@ def _classify_view(modality: str, entry: dict, runs: list[dict], oracle: dict | 
         comparisons = comparison_table(summary)
         if comparisons is not None:
             tables.append(table_view(comparisons, f"With against without generated images ({modality}): ranked only "
-                                                  f"when the 95% intervals do not overlap"))
+                                                  f"when the paired 95% interval of the difference excludes 0"))
         seeds = sorted(plain(s) for s in table["seed"].unique())
         tables.append(table_view(accuracy_table(table, modality, n, gan_n),
                                  f"Table III ({modality}): test accuracy after each iteration, mean ± std over seeds "
