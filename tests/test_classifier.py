@@ -354,6 +354,12 @@ def test_stage_writes_tables_summary_and_plot(tmp_path, monkeypatch):
         low, high = item["paired_interval"]
         assert low <= item["difference"] <= high and item["within_noise"] == (low <= 0 <= high)
         assert item["within_noise"] == item["verdict"].startswith("within noise (the paired 95% interval includes 0)")
+    # all real training images against the low-data share, paired the same way
+    more = summary["more_real_data"]
+    assert (more["setting"], more["against"]) == ("real", "low-data real")
+    assert more["difference"] == pytest.approx(summary["settings"]["real"]["final_mean"]
+                                               - summary["settings"]["low-data real"]["final_mean"], abs=1e-6)
+    assert more["paired_interval"][0] <= more["difference"] <= more["paired_interval"][1]
     assert summary["test_images_per_class"] == {c: 2 for c in CLASSES}
     # images per second: every image visit of every setting, seed and epoch, and every image evaluated
     speed = summary["throughput"]

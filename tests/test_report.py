@@ -174,7 +174,10 @@ def fake_run(root, at_chance: bool | None = None, greyscale: bool = False, half_
             "counts": {"real_test": 4}, "notes": [], "test_images_per_class": {c: 2 for c in CLASSES},
             "gan_test": {"setting": "real", "final_mean": 0.5, "images": 4, "interval": [0.15, 0.85]},
             "comparisons": [{"setting": "real+generated", "against": "real", "difference": 0.1, "overlap": True,
-                             "verdict": "within noise (95% intervals overlap)"}],
+                             "paired_interval": [-0.05, 0.25], "within_noise": True,
+                             "verdict": "within noise (the paired 95% interval includes 0)"}],
+            "more_real_data": {"setting": "real", "against": "low-data real", "difference": 0.26,
+                               "paired_interval": [-0.02, 0.54], "within_noise": True},
             "policy": _policy(modality),
             # real-only confusion on the 2 + 2 real test images (rows true class): tactile reads class 0 at 0.5
             "real_confusion": [[2, 0], [1, 1]] if modality == "visual" else [[1, 1], [0, 2]]})
@@ -395,10 +398,14 @@ def test_metrics_json_holds_headline_numbers_and_is_byte_identical_across_runs(t
          "gan_test_realistic": 0.625,
          "real_test_images": 4,
          "gain_from_generated.real+generated": 0.1,
+         # with its paired interval, so that dvc exp show tells a gain from noise
+         "gain_from_generated_paired95.real+generated.low": -0.05,
+         "gain_from_generated_paired95.real+generated.high": 0.25,
          # the policy's choice beside real only, so that dvc exp show reads both
-         "policy.accuracy": 0.81, "policy.real_only": 0.71, "policy.gain": 0.1, "policy.uses_generated": 1})
+         "policy.accuracy": 0.81, "policy.real_only": 0.71, "policy.gain": 0.1, "policy.uses_generated": 1,
+         "policy.gain_low": -0.05, "policy.gain_high": 0.25})
     assert metrics["classify"]["visual"]["policy"] == {"accuracy": 0.71, "real_only": 0.71, "gain": 0.0,
-                                                       "uses_generated": 0}
+                                                       "gain_low": 0.0, "gain_high": 0.0, "uses_generated": 0}
     assert metrics["counts"] == {"classes": 2, "images_kept": 12, "quarantined": 1, "models": 2}
 
 
@@ -414,8 +421,8 @@ def test_report_opens_with_verdicts_and_warns_where_generated_data_fails(tmp_pat
     verdicts = summary.index("## Verdicts")
     assert verdicts < summary.index("## Data provenance") < summary.index("Table I:")
     assert summary.index("- V2T KID (classifier): generated 0.05 beats every trivial baseline") > verdicts
-    assert ("- tactile classification, real+generated against real: accuracy +0.100, within noise (95% intervals "
-            "overlap) (n = 4 test images)") in summary
+    assert ("- tactile classification, real+generated against real: accuracy +0.100, within noise (the paired 95% "
+            "interval includes 0) (n = 4 test images)") in summary
     assert "WARNING: V2T" not in summary  # only status warning is marked
     # the data facts: pair kinds per direction and split, the dropped pairs, per-class test n
     assert "- T2V pairs: train 8 (pixel 4, class 4), test 2 (pixel 1, class 1)" in summary
@@ -443,8 +450,9 @@ def test_first_screen_answers_whether_generated_data_helps_before_the_long_lines
     assert ("| tactile | chosen on validation; within noise on test (unresolved) | real+generated | 0.810 [0.400, 0.970] "
             "| 0.710 [0.300, 0.950] | +0.100 [-0.050, +0.250] | 4 |") in summary
     assert "| visual | not tested: real only (not scored) | real | 0.710 [0.300, 0.950] | 0.710 [0.300, 0.950] |" in summary
-    # more real data: low-data real -> real only, within noise here (the intervals overlap), explained below
-    assert "| 4 | 0.450 → 0.710: within noise |" in summary and "<td>0.450 → 0.710: within noise</td>" in page
+    # more real data: low-data real -> real only, within noise here (the paired interval includes 0), explained below
+    assert "| 4 | 0.450 → 0.710 [-0.020, +0.540]: within noise |" in summary
+    assert "<td>0.450 → 0.710 [-0.020, +0.540]: within noise</td>" in page
     assert "little room to help the low-data setting" in summary[first:verdicts]
     assert "too few groups" in summary[first:verdicts] and "&lt;b&gt;" in page[:page.index("<h2>Verdicts</h2>")]
     # the grid: one row per direction, one column per family, each cell coloured by its status
@@ -719,16 +727,19 @@ def test_report_renders_in_headless_chromium_with_every_image_and_table(snakemak
     assert SCREENSHOT.stat().st_size > 10_000
 
 
-def test_more_real_data_says_whether_all_real_images_beat_the_low_data_share_beyond_the_intervals():
+def test_more_real_data_says_whether_all_real_images_beat_the_low_data_share_beyond_the_paired_interval():
     from vtgen.io.report_verdicts import more_real_data
 
-    low = {"final_mean": 0.225, "interval": [0.177, 0.282]}
-    assert more_real_data({"low-data real": low, "real": {"final_mean": 0.239, "interval": [0.189, 0.297]}}) \
-        == "0.225 → 0.239: within noise"
-    assert more_real_data({"low-data real": low, "real": {"final_mean": 0.4, "interval": [0.3, 0.5]}}) \
-        == "0.225 → 0.400: more real data helps"
-    assert more_real_data({"low-data real": {"final_mean": 0.225}, "real": {"final_mean": 0.4}}) == "0.225 → 0.400"
-    assert more_real_data({"real": {"final_mean": 0.4}}) == "—"
+    settings = {"low-data real": {"final_mean": 0.225}, "real": {"final_mean": 0.239}}
+    def gain(low, high):
+        return {"paired_interval": [low, high], "within_noise": low <= 0 <= high}
+    assert more_real_data({"settings": settings, "more_real_data": gain(-0.05, 0.08)}) \
+        == "0.225 → 0.239 [-0.050, +0.080]: within noise"
+    assert more_real_data({"settings": settings, "more_real_data": gain(0.01, 0.03)}) \
+        == "0.225 → 0.239 [+0.010, +0.030]: more real data helps"
+    assert more_real_data({"settings": settings, "more_real_data": gain(-0.3, -0.1)}).endswith(": more real data hurts")
+    assert more_real_data({"settings": settings}) == "0.225 → 0.239"  # no paired gain: no verdict
+    assert more_real_data({"settings": {"real": {"final_mean": 0.4}}}) == "—"
 
 
 def test_gan_test_caveat_says_what_the_generator_was_told():

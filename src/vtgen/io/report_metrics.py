@@ -88,8 +88,9 @@ def classify_headline(entry: dict) -> dict:
     """Mean final-epoch test accuracy over seeds per setting, the GAN-test, the GAN-test as a share of the
     real-only test accuracy (``gan_test_vs_real``: how recognisable generated images are against real
     ones), the test-set size, the accuracy gained from generated images per comparison
-    (``gain_from_generated``) and the policy's (``policy``: the chosen setting's test accuracy beside
-    real only's, their difference and 1 where it adds generated images, 0 where not)."""
+    (``gain_from_generated``) with its paired 95% interval (``gain_from_generated_paired95``: low, high) and the
+    policy's (``policy``: the chosen setting's test accuracy beside real only's, their difference with its
+    paired 95% interval (gain_low, gain_high) and 1 where it adds generated images, 0 where not)."""
     table, summary = entry["accuracy"], entry["summary"]
     if summary.get("status", "ok") != "ok" or table.empty:
         return {}
@@ -103,10 +104,15 @@ def classify_headline(entry: dict) -> dict:
     result["real_test_images"] = (summary.get("counts") or {}).get("real_test")
     result["gain_from_generated"] = _compact({c["setting"]: _number(c["difference"])
                                               for c in summary.get("comparisons") or []})
+    result["gain_from_generated_paired95"] = _compact({
+        c["setting"]: {"low": _number(c["paired_interval"][0]), "high": _number(c["paired_interval"][1])}
+        for c in summary.get("comparisons") or [] if c.get("paired_interval")})
     test = (summary.get("policy") or {}).get("test") or {}
     if test.get("accuracy") is not None:
         result["policy"] = _compact({"accuracy": _number(test["accuracy"]), "real_only": _number(test["real_accuracy"]),
                                      "gain": _number(test.get("gain")),
+                                     "gain_low": _number((test.get("gain_interval") or [None, None])[0]),
+                                     "gain_high": _number((test.get("gain_interval") or [None, None])[1]),
                                      "uses_generated": int(test["setting"] != "real")})
     return _compact(result)
 

@@ -65,7 +65,7 @@ def verdict_lines(data: dict) -> list[dict]:
             continue
         n = (summary.get("counts") or {}).get("real_test", "?")
         for item in summary.get("comparisons") or []:
-            add("unresolved" if item.get("within_noise", item.get("overlap")) else "ok",
+            add("unresolved" if item["within_noise"] else "ok",
                 f"{modality} classification, {item['setting']} against {item['against']}: accuracy "
                 f"{item['difference']:+.3f}, {item['verdict']} (n = {n} test images)")
         for setting in entry["at_chance"]:
@@ -80,19 +80,23 @@ def verdict_lines(data: dict) -> list[dict]:
 VERDICT_COLOURS = ("ok", "unresolved", "warning", "uninformative", "not scored")
 
 
-def more_real_data(settings: dict) -> str:
+def more_real_data(summary: dict) -> str:
     """The test accuracy of real only with the low-data share of the training images and with all of them
-    (``low → all``) and whether all is better beyond both 95% intervals; an em dash when either is missing.
-    Within noise, more real images did not help the classifier, so generated images learned from those same
-    images have little room to help the low-data setting."""
+    (``low → all``) and whether all is better beyond the paired 95% interval of their difference (summary.json's
+    ``more_real_data``); an em dash when either accuracy is missing. Within noise, more real images did not help the
+    classifier, so generated images learned from those same images have little room to help the low-data setting."""
+    settings = summary.get("settings") or {}
     low, full = settings.get("low-data real") or {}, settings.get("real") or {}
     if low.get("final_mean") is None or full.get("final_mean") is None:
         return "—"
     text = f"{low['final_mean']:.3f} → {full['final_mean']:.3f}"
-    (low_lo, low_hi), (full_lo, _) = low.get("interval") or (None, None), full.get("interval") or (None, None)
-    if low_hi is None or full_lo is None:
+    gain = summary.get("more_real_data")
+    if not gain:
         return text
-    return text + (": more real data helps" if full_lo > low_hi else ": within noise")
+    low_gain, high_gain = gain["paired_interval"]
+    return text + (f" [{low_gain:+.3f}, {high_gain:+.3f}]: "
+                   + ("within noise" if gain["within_noise"] else "more real data helps" if low_gain > 0
+                      else "more real data hurts"))
 
 
 def policy_rows(data: dict) -> list[dict]:
@@ -125,7 +129,7 @@ def policy_rows(data: dict) -> list[dict]:
                      "real": interval_cell(test.get("real_accuracy"), *(test.get("real_interval") or (None, None))),
                      "gain": "—" if gain is None else f"{gain:+.3f}" + (f" [{low:+.3f}, {high:+.3f}]"
                                                                          if low is not None else ""),
-                     "n": test.get("images", "—"), "more_real": more_real_data(summary.get("settings") or {}),
+                     "n": test.get("images", "—"), "more_real": more_real_data(summary),
                      "why": policy.get("reason", "")})
     return rows
 

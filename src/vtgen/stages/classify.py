@@ -82,6 +82,7 @@ ACCURACY_COLUMNS = {
 BY_CLASS_COLUMNS = ["modality", "setting", "class", "images", "accuracy", "low", "high", "seeds"]
 # (with generated images, without): the paper's question, asked at full and at low data
 COMPARISONS = (("real+generated", "real"), ("low-data real+generated", "low-data real"))
+MORE_REAL = ("real", "low-data real")  # how much all real training images add over the low-data share
 GAN_TEST = "GAN-test"
 
 
@@ -193,47 +194,57 @@ def accuracy_by_class(predictions: dict[tuple[str, int], np.ndarray], labels: np
     return pd.DataFrame(rows, columns=BY_CLASS_COLUMNS)
 
 
-def paired_gains(runs: dict, sets: dict) -> dict[tuple[str, str], tuple[float, float, float]]:
-    """Each COMPARISONS pair's gain on the real test images, paired image by image over the seeds, with its 95%
-    interval (:func:`vtgen.core.generated_policy.paired_difference`: split groups as units, the seeds' spread
-    counted)."""
+def _test_correct(runs: dict, sets: dict, setting: str, seeds: list[int]) -> np.ndarray:
+    """``seeds x test images``: whether the run of ``setting`` with each seed read each real test image right."""
     test_y = sets["test"][1].numpy()
+    return np.stack([runs[(setting, seed)]["run"].test_predictions.numpy() == test_y for seed in seeds])
+
+
+def paired_gains(runs: dict, sets: dict) -> dict[tuple[str, str], tuple[float, float, float]]:
+    """Each COMPARISONS pair's gain on the real test images, and MORE_REAL's (all real images against the low-data
+    share), paired image by image over the seeds, with its 95% interval
+    (:func:`vtgen.core.generated_policy.paired_difference`: split groups as units, the seeds' spread counted)."""
     seeds = sorted({seed for setting, seed in runs if setting == "real"})
     result = {}
-    for with_generated, without in COMPARISONS:
-        if len(test_y) and all((name, seed) in runs for name in (with_generated, without) for seed in seeds):
-            correct = {name: np.stack([runs[(name, s)]["run"].test_predictions.numpy() == test_y for s in seeds])
-                       for name in (with_generated, without)}
-            result[(with_generated, without)] = generated_policy.paired_difference(
-                correct[with_generated], correct[without], sets["test_groups"])
+    for better, against in COMPARISONS + (MORE_REAL,):
+        if len(sets["test"][1]) and all((name, seed) in runs for name in (better, against) for seed in seeds):
+            result[(better, against)] = generated_policy.paired_difference(
+                _test_correct(runs, sets, better, seeds), _test_correct(runs, sets, against, seeds),
+                sets["test_groups"])
     return result
 
 
-def compare_settings(per_setting: dict, paired: dict | None = None) -> list[dict]:
-    """With vs without generated images (COMPARISONS): the difference of final mean accuracies, whether their
-    separate 95% intervals overlap, and a verdict that ranks them only when the paired difference's 95% interval
-    (``paired``, from :func:`paired_gains`) excludes 0, or without it only when the separate intervals do not
-    overlap. Both settings are scored on the same test images, so the paired interval is the narrower, fair one."""
+def compare_settings(per_setting: dict, paired: dict) -> list[dict]:
+    """With vs without generated images (COMPARISONS): the difference of final mean accuracies, the paired
+    difference's 95% interval (``paired``, from :func:`paired_gains`; both settings are scored on the same test
+    images), ``within_noise`` where it includes 0, a verdict that ranks them only where it does not, and whether
+    their separate Wilson intervals overlap (kept as data: that test needs a far larger gain)."""
     result = []
     for with_generated, without in COMPARISONS:
         a, b = per_setting.get(with_generated), per_setting.get(without)
-        if not a or not b or a["interval"] is None or b["interval"] is None:
+        gain = paired.get((with_generated, without))
+        if not a or not b or a["interval"] is None or b["interval"] is None or gain is None or not math.isfinite(gain[1]):
             continue
-        overlap = a["interval"][0] <= b["interval"][1] and b["interval"][0] <= a["interval"][1]
         difference = a["final_mean"] - b["final_mean"]
-        gain = (paired or {}).get((with_generated, without))
-        item = {"setting": with_generated, "against": without, "difference": round(difference, 6), "overlap": overlap}
-        if gain is not None and math.isfinite(gain[1]):
-            item["paired_interval"] = [round(gain[1], 6), round(gain[2], 6)]
-            item["within_noise"] = gain[1] <= 0 <= gain[2]
-            noise = "within noise (the paired 95% interval includes 0)"
-        else:
-            item["within_noise"] = overlap
-            noise = "within noise (95% intervals overlap)"
-        item["verdict"] = (noise if item["within_noise"]
-                           else "generated images help" if difference > 0 else "generated images hurt")
-        result.append(item)
+        within_noise = gain[1] <= 0 <= gain[2]
+        result.append({
+            "setting": with_generated, "against": without, "difference": round(difference, 6),
+            "overlap": a["interval"][0] <= b["interval"][1] and b["interval"][0] <= a["interval"][1],
+            "paired_interval": [round(gain[1], 6), round(gain[2], 6)], "within_noise": within_noise,
+            "verdict": ("within noise (the paired 95% interval includes 0)" if within_noise
+                        else "generated images help" if difference > 0 else "generated images hurt")})
     return result
+
+
+def more_real_data(paired: dict) -> dict | None:
+    """summary.json's ``more_real_data``: all real training images against the low-data share (MORE_REAL), the
+    paired test gain and its 95% interval, and ``within_noise`` where the interval includes 0 (then generated
+    images learned from those same images have little room to help the low-data setting beyond the noise)."""
+    gain = paired.get(MORE_REAL)
+    if gain is None or not math.isfinite(gain[1]):
+        return None
+    return {"setting": MORE_REAL[0], "against": MORE_REAL[1], "difference": round(gain[0], 6),
+            "paired_interval": [round(gain[1], 6), round(gain[2], 6)], "within_noise": gain[1] <= 0 <= gain[2]}
 
 
 def chance_warnings(modality: str, summary: dict) -> list[str]:
@@ -342,6 +353,7 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     predictions.update({(GAN_TEST, seed): r["run"].extra_predictions["gan_test"].numpy()
                         for (setting, seed), r in runs.items() if setting == "real" and len(sets["gan"][0])})
     per_setting, gan_test = summarise(table, len(classes), len(sets["test"][0]), len(sets["gan"][0]))
+    paired = paired_gains(runs, sets)
     by_class = pd.concat([
         accuracy_by_class({k: v for k, v in predictions.items() if k[0] != GAN_TEST}, sets["test"][1].numpy(), classes,
                           modality),
@@ -352,7 +364,8 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     encoder = runs[("real", cfg["seeds"][0])]["run"].model
     summary.update(status="ok", chance=1.0 / len(classes), device=str(device), precision={"used": precision, "why": why},
                    counts=sets["counts"], settings=per_setting, skipped=skipped, gan_test=gan_test,
-                   comparisons=compare_settings(per_setting, paired_gains(runs, sets)), policy=choose_policy(plan, runs, sets, per_setting),
+                   comparisons=compare_settings(per_setting, paired), more_real_data=more_real_data(paired),
+                   policy=choose_policy(plan, runs, sets, per_setting),
                    real_confusion=[[round(float(v), 6) for v in row] for row in real_confusion],
                    test_images_per_class=sets["counts"]["per_class_real_test"],
                    encoder={"file": "encoder.pt", "setting": "real", "seed": cfg["seeds"][0]},
@@ -373,7 +386,7 @@ def _not_applicable(summary: dict, modality: str, real_train: int, out_dir: Path
     held = f" ({classes[0]})" if classes else ""
     status = f"not applicable: classification needs at least 2 classes, the data has {len(classes)}{held}"
     summary.update(status=status, chance=None, counts={"real_train": real_train}, settings={}, skipped={},
-                   gan_test=None, comparisons=[], policy=None)
+                   gan_test=None, comparisons=[], more_real_data=None, policy=None)
     with atomic_output_dir(out_dir) as tmp:
         _write_outputs(tmp, pd.DataFrame(columns=list(ACCURACY_COLUMNS)), summary, {}, None, status)
     print(f"classify {modality}: warning: {status}; empty tables -> {out_dir}")
@@ -485,8 +498,7 @@ def choose_policy(plan: dict, runs: dict, sets: dict, per_setting: dict) -> dict
     chosen, real = per_setting.get(result["chosen"]) or {}, per_setting.get("real") or {}
     test_y = sets["test"][1].numpy()
     gain = generated_policy.paired_difference(
-        np.stack([runs[(result["chosen"], s)]["run"].test_predictions.numpy() == test_y for s in seeds]),
-        np.stack([runs[("real", s)]["run"].test_predictions.numpy() == test_y for s in seeds]),
+        _test_correct(runs, sets, result["chosen"], seeds), _test_correct(runs, sets, "real", seeds),
         sets["test_groups"]) if len(test_y) else (None, None, None)
     result["uses_generated"] = result["chosen"] != "real"
     result["test"] = {"setting": result["chosen"], "accuracy": chosen.get("final_mean"),
