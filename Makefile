@@ -39,8 +39,9 @@ cluster:
 run: $(STAMP)
 	snakemake --cores 2
 
+# --durations: the slowest tests close the log, so that a CI run shows where its time went
 test: $(STAMP) browser cluster
-	pytest -q
+	pytest -q --durations=25
 
 # the fast tier for development: neither the end-to-end workflow runs nor the slow unit tests
 test-fast: $(STAMP)
