@@ -60,8 +60,7 @@ def _pairs(args, params) -> None:
 def _settings(args, params) -> None:
     from vtgen.stages.settings import run_settings
 
-    raw = load_params(args.params)
-    chosen, reason = recipe_choice(raw, data_kind(args, raw))
+    chosen, reason = args.recipe
     print(f"settings {args.direction}: recipe '{chosen}' ({reason})")
     run_settings(params, args.direction, args.out)
 
@@ -100,10 +99,8 @@ def _classify(args, params) -> None:
 def _report(args, params) -> None:
     from vtgen.stages.report import run_report
 
-    raw = load_params(args.params)
-    _, reason = recipe_choice(raw, data_kind(args, raw))
     run_report(params, args.ingest, args.pairs, args.models, args.generated, args.scores, args.classify, args.out,
-               recipe_reason=reason)
+               recipe_reason=args.recipe[1])
 
 
 def _study(args, params) -> None:
@@ -304,7 +301,9 @@ def run_stage(args, params) -> None:
     started = time.perf_counter()
     with run_lock(f"vtgen {args.stage}"):
         job, inputs = _declared_job(args, params)  # records read params.yaml as written, as DVC does
-        args.func(args, with_recipe(params, data_kind(args, params)))
+        kind = data_kind(args, params)
+        args.recipe = recipe_choice(params, kind)  # the block applied and why, for the stages that say it
+        args.func(args, with_recipe(params, kind))
         out = Path(args.out)
         # not reports/ (declared files only) nor a settings folder (its content alone decides whether training reruns)
         if out.is_dir() and args.stage not in ("report", "studies-report", "settings"):
