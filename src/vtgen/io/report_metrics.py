@@ -109,10 +109,10 @@ def classify_headline(entry: dict) -> dict:
         for c in summary.get("comparisons") or [] if c.get("paired_interval")})
     test = (summary.get("policy") or {}).get("test") or {}
     if test.get("accuracy") is not None:
+        gain_low, gain_high = test.get("gain_interval") or (None, None)
         result["policy"] = _compact({"accuracy": _number(test["accuracy"]), "real_only": _number(test["real_accuracy"]),
-                                     "gain": _number(test.get("gain")),
-                                     "gain_low": _number((test.get("gain_interval") or [None, None])[0]),
-                                     "gain_high": _number((test.get("gain_interval") or [None, None])[1]),
+                                     "gain": _number(test.get("gain")), "gain_low": _number(gain_low),
+                                     "gain_high": _number(gain_high),
                                      "uses_generated": int(test["setting"] != "real")})
     return _compact(result)
 

@@ -214,6 +214,14 @@ def paired_gains(runs: dict, sets: dict) -> dict[tuple[str, str], tuple[float, f
     return result
 
 
+def _paired_fields(gain: tuple[float, float, float] | None) -> dict | None:
+    """A gain from :func:`paired_gains` as summary.json writes it: ``paired_interval`` (95%, rounded) and
+    ``within_noise`` (the interval includes 0); None without a finite interval."""
+    if gain is None or not math.isfinite(gain[1]):
+        return None
+    return {"paired_interval": [round(gain[1], 6), round(gain[2], 6)], "within_noise": gain[1] <= 0 <= gain[2]}
+
+
 def compare_settings(per_setting: dict, paired: dict) -> list[dict]:
     """With vs without generated images (COMPARISONS): the difference of final mean accuracies, the paired
     difference's 95% interval (``paired``, from :func:`paired_gains`; both settings are scored on the same test
@@ -222,16 +230,14 @@ def compare_settings(per_setting: dict, paired: dict) -> list[dict]:
     result = []
     for with_generated, without in COMPARISONS:
         a, b = per_setting.get(with_generated), per_setting.get(without)
-        gain = paired.get((with_generated, without))
-        if not a or not b or a["interval"] is None or b["interval"] is None or gain is None or not math.isfinite(gain[1]):
+        fields = _paired_fields(paired.get((with_generated, without)))
+        if not a or not b or a["interval"] is None or b["interval"] is None or fields is None:
             continue
         difference = a["final_mean"] - b["final_mean"]
-        within_noise = gain[1] <= 0 <= gain[2]
         result.append({
             "setting": with_generated, "against": without, "difference": round(difference, 6),
-            "overlap": a["interval"][0] <= b["interval"][1] and b["interval"][0] <= a["interval"][1],
-            "paired_interval": [round(gain[1], 6), round(gain[2], 6)], "within_noise": within_noise,
-            "verdict": ("within noise (the paired 95% interval includes 0)" if within_noise
+            "overlap": a["interval"][0] <= b["interval"][1] and b["interval"][0] <= a["interval"][1], **fields,
+            "verdict": ("within noise (the paired 95% interval includes 0)" if fields["within_noise"]
                         else "generated images help" if difference > 0 else "generated images hurt")})
     return result
 
@@ -240,11 +246,10 @@ def more_real_data(paired: dict) -> dict | None:
     """summary.json's ``more_real_data``: all real training images against the low-data share (MORE_REAL), the
     paired test gain and its 95% interval, and ``within_noise`` where the interval includes 0 (then generated
     images learned from those same images have little room to help the low-data setting beyond the noise)."""
-    gain = paired.get(MORE_REAL)
-    if gain is None or not math.isfinite(gain[1]):
+    fields = _paired_fields(paired.get(MORE_REAL))
+    if fields is None:
         return None
-    return {"setting": MORE_REAL[0], "against": MORE_REAL[1], "difference": round(gain[0], 6),
-            "paired_interval": [round(gain[1], 6), round(gain[2], 6)], "within_noise": gain[1] <= 0 <= gain[2]}
+    return {"setting": MORE_REAL[0], "against": MORE_REAL[1], "difference": round(paired[MORE_REAL][0], 6), **fields}
 
 
 def chance_warnings(modality: str, summary: dict) -> list[str]:
