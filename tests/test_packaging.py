@@ -151,3 +151,13 @@ def test_installed_command_vtgen_debug_switches_the_traceback(installed):
     assert loud.returncode == 1 and loud.stderr.startswith("Traceback (most recent call last):")
     assert "vtgen.io.params.ParamsError:" in loud.stderr and "classify: unknown key 'lrr'" in loud.stderr
     assert str(installed[0]) in loud.stderr  # the traceback runs through the installed files
+
+
+@pytest.mark.parametrize("stage", ["render", "ingest", "roi", "pairs", "settings", "report"])
+def test_stages_without_networks_start_without_torch_or_scikit_learn(stage):
+    """Each stage is a process of its own, many per run: the ones that only read and write images and tables
+    must not pay torch's import (about a second) or scikit-learn's (another)."""
+    code = (f"import sys, vtgen.cli, vtgen.stages.{stage}; "
+            "print(sorted(m for m in ('torch', 'sklearn') if m in sys.modules))")
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert loaded == "[]", f"vtgen.stages.{stage} imports {loaded}"

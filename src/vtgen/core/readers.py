@@ -22,8 +22,6 @@ from __future__ import annotations
 import numpy as np
 import torch
 from skimage import color, feature, transform
-from sklearn.linear_model import LogisticRegression
-from sklearn.preprocessing import StandardScaler
 from torch import nn
 
 FEATURE_SIDE = 64
@@ -69,6 +67,9 @@ def fit_feature_reader(images: torch.Tensor, labels: torch.Tensor, num_classes: 
     """A :class:`FeatureReader` fitted on uint8 ``images`` with class indices ``labels`` (0..num_classes-1, at
     least two distinct): standardisation and an L2-penalised multinomial logistic regression (C =
     ``inverse_penalty``; lbfgs, deterministic)."""
+    from sklearn.linear_model import LogisticRegression  # here, not at the top: scikit-learn takes a second to import
+    from sklearn.preprocessing import StandardScaler
+
     present = sorted(set(labels.tolist()))
     if len(present) < 2:
         raise ValueError(f"the feature reader needs images of at least 2 classes, got {present}")

@@ -21,11 +21,15 @@ from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Callable, Iterable, Iterator, TypeVar
 
+import sys
+from typing import TYPE_CHECKING
+
 import cv2
 import numpy as np
-import torch
-import torch.nn.functional as F
 from PIL import Image
+
+if TYPE_CHECKING:  # torch is imported where tiles become tensors: the stages that only read and write images start a second sooner
+    import torch
 
 IMAGE_EXTENSIONS = frozenset({".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp"})
 # The file formats the pipeline decodes, and the one each extension promises. Pillow reads
@@ -202,7 +206,9 @@ def _pool_worker(parent: int) -> None:
     starts first, so that a worker stuck in its first OpenCV call still ends with its parent."""
     threading.Thread(target=_exit_with, args=(parent,), daemon=True).start()
     cv2.setNumThreads(1)
-    torch.set_num_threads(1)
+    os.environ["OMP_NUM_THREADS"] = "1"  # torch imported later in this worker reads it
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(1)
 
 
 def _exit_with(parent: int) -> None:
@@ -423,6 +429,8 @@ def read_tiles(paths: list[str], size: int, root: Path = Path("."), remedy: str 
     """Read 8-bit RGB tiles (``root / path``) into a uint8 N x 3 x size x size tensor, resizing (area/bilinear)
     when needed. A missing, truncated, corrupt or non-RGB file, or tiles of different sizes, raise ValueError
     naming the file and ``remedy`` (the stage that writes these images)."""
+    import torch
+
     if not paths:
         return torch.zeros((0, 3, size, size), dtype=torch.uint8)
     arrays = []
@@ -438,6 +446,9 @@ def read_tiles(paths: list[str], size: int, root: Path = Path("."), remedy: str 
 def resize_tiles(batch: torch.Tensor, size: int) -> torch.Tensor:
     """A uint8 N x 3 x H x W batch at ``size`` x ``size``: unchanged when it is already, else area-resized
     when shrinking and bilinear when growing, rounded back to uint8."""
+    import torch
+    import torch.nn.functional as F
+
     if batch.shape[-1] != size or batch.shape[-2] != size:
         batch = F.interpolate(batch.float(), size=(size, size), mode="area" if batch.shape[-1] > size else "bilinear",
                               align_corners=None if batch.shape[-1] > size else False)
