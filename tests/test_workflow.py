@@ -397,14 +397,8 @@ def numbers(tree) -> list[float]:
     return [tree] if isinstance(tree, (int, float)) and not isinstance(tree, bool) else []
 
 
-def test_dvc_experiments_show_compare_apply_and_round_trip(tmp_path):
-    project = make_project(tmp_path / "project", tiny_params())
-    shutil.copy(REPO / ".gitignore", project / ".gitignore")
-    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t"]
-    for command in (["git", "init", "-q"], ["dvc", "init", "-q"], ["dvc", "config", "core.analytics", "false"],
-                    ["git", "add", "-A"], git + ["commit", "-qm", "project"], ["dvc", "repro"],
-                    ["git", "add", "-A"], git + ["commit", "-qm", "baseline run"]):
-        run(command, project)
+def test_dvc_experiments_show_compare_apply_and_round_trip(snakemake_project, tmp_path):
+    project, _ = finished_copy(snakemake_project, tmp_path)  # the baseline: the finished run, committed in git and DVC
     tracked = run(["git", "ls-files"], project).stdout.split()
     assert {"dvc.lock", "reports/metrics.json", "reports/plots/training.csv"} <= set(tracked)
 
