@@ -102,7 +102,7 @@ def reference_training(train_x, train_y, test_x, test_y, extra_x, extra_y, setti
         return int((predicted == y).sum()) / len(y), predicted
 
     model = make_classifier(num_classes, settings, seed)
-    optimiser = torch.optim.Adam(model.parameters(), lr=settings["lr"], fused=True)  # the stage's optimiser (one kernel)
+    optimiser = torch.optim.Adam(model.parameters(), lr=settings["lr"], foreach=False)
     sampler, count, batch = torch.Generator().manual_seed(seed), len(train_x), settings["batch_size"]
     test_accuracy, extra_accuracy, losses = [], [], []
     with torch.random.fork_rng(devices=[]):
@@ -138,7 +138,7 @@ def reference_training(train_x, train_y, test_x, test_y, extra_x, extra_y, setti
 
 @pytest.mark.parametrize("prescale", [True, False])
 def test_training_gives_exactly_the_numbers_of_the_straightforward_loop(prescale, monkeypatch):
-    """Scaling every set once, the gathered mirror images, the shortened batch-norm
+    """Scaling every set once, the gathered mirror images, the foreach Adam, the shortened batch-norm
     refresh and the kept final predictions change the speed only: accuracies, predictions and
     weights are bit for bit those of the plain loop (with the per-batch fallback too)."""
     import vtgen.core.classifier as classifier

@@ -31,8 +31,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from vtgen.core.gan import make_optimizer
-
 BASE_CHANNELS = (96, 256, 384, 384, 256)
 BASE_HIDDEN = 4096
 MIN_CHANNELS = 8
@@ -482,9 +480,7 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
     model = make_classifier(num_classes, settings, seed)
     loaded = apply_weights(model, weights, retrain_layers, weights_source) if weights is not None else None
     model.to(device)
-    # fused: one kernel over all parameters, a quarter off each step on CPU (benchmarks/README.md, Forty-second round)
-    optimiser = make_optimizer([p for p in model.parameters() if p.requires_grad], "adam", settings["lr"], (0.9, 0.999),
-                               multi_tensor_on=device.type)
+    optimiser = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=settings["lr"])
     started = time.perf_counter()
     data = _TrainingImages(train_x, train_y, bool(settings.get("flip", True)), device)
     evaluated = {name: (data.prepare(x, device), y.long().to(device))
