@@ -39,9 +39,10 @@ cluster:
 run: $(STAMP)
 	snakemake --cores 2
 
-# --durations: the slowest tests close the log, so that a CI run shows where its time went
+# --durations: the slowest tests close the log, so that a CI run shows where its time went.
+# -n 2: two test workers (pytest-xdist), one file at a time each, in the order tests/conftest.py gives
 test: $(STAMP) browser cluster
-	pytest -q --durations=25
+	pytest -q -n 2 --dist loadfile --no-loadscope-reorder --durations=25
 
 # the fast tier for development: neither the end-to-end workflow runs nor the slow unit tests
 test-fast: $(STAMP)

@@ -20,6 +20,19 @@ VITAC = REPO.parent / "shared" / "data" / "vitac_cloth11"
 VT60 = REPO.parent / "shared" / "data" / "vt60_subset"
 
 
+# `make test` runs the tests on two workers, one test file per worker at a time (pytest-xdist, --dist loadfile
+# --no-loadscope-reorder: files are handed out in collection order). The files below hold the end-to-end runs, the
+# longest first (pytest --durations); they go first so that no long file starts last while the other worker idles.
+LONGEST_FILES_FIRST = ("test_workflow.py", "test_cluster.py", "test_rerun.py", "test_nothing_silent.py",
+                       "test_reliability.py", "test_studies.py", "test_report.py", "test_fuzz.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Collection order: the files of LONGEST_FILES_FIRST in that order, then the others as collected."""
+    rank = {name: i for i, name in enumerate(LONGEST_FILES_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: tests keep their order within a file
+
+
 @pytest.fixture
 def vt60_root() -> Path:
     """The real VT60 subset (10 objects, round-sensor grey touch frames and RGB photos, its authors' layout)."""
