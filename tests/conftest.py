@@ -20,9 +20,9 @@ VITAC = REPO.parent / "shared" / "data" / "vitac_cloth11"
 VT60 = REPO.parent / "shared" / "data" / "vt60_subset"
 
 
-# `make test` runs the tests on two workers, one test file per worker at a time (pytest-xdist, --dist loadfile
-# --no-loadscope-reorder: files are handed out in collection order). The files below hold the end-to-end runs, the
-# longest first (pytest --durations); they go first so that no long file starts last while the other worker idles.
+# `make test` runs the tests on two workers that take one test file at a time, in collection order (the Makefile's
+# pytest-xdist flags). The files below hold the end-to-end runs, the longest first (pytest --durations); they go first
+# so that no long file starts last while the other worker idles.
 LONGEST_FILES_FIRST = ("test_workflow.py", "test_cluster.py", "test_rerun.py", "test_nothing_silent.py",
                        "test_reliability.py", "test_studies.py", "test_report.py", "test_fuzz.py")
 
