@@ -6,6 +6,7 @@ import copy
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from vtgen.core.augment import augment_policy, colour, cutout, diff_augment, translation
 from vtgen.core.models import ProjectionDiscriminator
@@ -158,6 +159,81 @@ def test_mode_seeking_per_pair_off_adds_no_key_and_on_changes_only_the_generator
     assert same(g, base_g) and same(d, base_d)
     g, d = stepped(mode_seeking_per_pair=True)
     assert same(d, base_d) and not same(g, base_g)
+
+
+def test_packing_puts_the_two_rows_of_a_class_side_by_side():
+    training = TranslatorTraining(dict(SETTINGS, **CLASS_GAN, pack=2), "cpu", num_classes=3)
+    images = torch.arange(4.0)[:, None, None, None].expand(4, 3, 2, 2)  # row i filled with i
+    packs, labels = training.packed(images, torch.tensor([2, 2, 0, 0]))
+    assert packs.shape == (2, 6, 2, 2) and labels.tolist() == [2, 0]
+    assert [packs[k, :3].unique().item() for k in range(2)] == [0.0, 2.0]
+    assert [packs[k, 3:].unique().item() for k in range(2)] == [1.0, 3.0]
+    assert training.discriminator.in_channels == 6
+    single = TranslatorTraining(dict(SETTINGS, **CLASS_GAN), "cpu", num_classes=3)
+    same, _ = single.packed(images, torch.tensor([2, 2, 0, 0]))
+    assert same is images and single.discriminator.in_channels == 3
+    with pytest.raises(ValueError, match="pack must be 1 or 2"):
+        TranslatorTraining(dict(SETTINGS, **CLASS_GAN, pack=3), "cpu", num_classes=3)
+
+
+def test_a_packed_discriminator_tells_twin_outputs_from_distinct_ones_and_a_single_one_cannot():
+    """PacGAN's point (Lin et al. 2018): outputs that repeat one image have the marginal of real images, so a
+    discriminator judging one image at a time sits at chance; judging the two images of a class together, it
+    sees that they are equal."""
+    def accuracy(pack: int) -> float:
+        torch.manual_seed(0)
+        training = TranslatorTraining(dict(SETTINGS, **CLASS_GAN, pack=pack), "cpu", num_classes=1)
+        d = training.discriminator
+        optimiser = torch.optim.Adam(d.parameters(), lr=1e-3, betas=(0.5, 0.999))
+        labels = torch.zeros(16, dtype=torch.int64)
+
+        def draw():
+            distinct = torch.rand(16, 3, 16, 16) * 2 - 1
+            twins = (torch.rand(8, 3, 16, 16) * 2 - 1).repeat_interleave(2, dim=0)  # rows 2k and 2k+1 equal
+            return d(*training.packed(distinct, labels)), d(*training.packed(twins, labels))
+
+        for _ in range(60):
+            real, fake = draw()
+            loss = (F.binary_cross_entropy_with_logits(real, torch.ones_like(real))
+                    + F.binary_cross_entropy_with_logits(fake, torch.zeros_like(fake)))
+            optimiser.zero_grad()
+            loss.backward()
+            optimiser.step()
+        with torch.no_grad():
+            real, fake = (logits.mean(dim=(1, 2, 3)) for logits in draw())
+        return float(((real > 0).float().mean() + (fake < 0).float().mean()) / 2)
+
+    assert accuracy(2) >= 0.95
+    assert accuracy(1) <= 0.75
+
+
+def test_pack_1_adds_no_key_and_2_changes_the_step(default_params):
+    """``class_gan.pack`` 1 (the default) adds no settings key, so the step and the checkpoints hashed from the
+    settings are those of the code before the switch; 2 changes both networks' step; either per direction."""
+    from vtgen.io.params import ParamsError, validate_params
+    params = copy.deepcopy(default_params)
+    assert params["translation"]["class_gan"]["pack"] == 1
+    assert "pack" not in objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")
+    params["translation"]["class_gan"]["pack"] = {"v2t": 2, "t2v": 1}
+    validate_params(params)
+    assert objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")["pack"] == 2
+    assert "pack" not in objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v")
+    params["translation"]["class_gan"]["pack"] = 4
+    with pytest.raises(ParamsError, match=r"translation\.class_gan\.pack"):
+        validate_params(params)
+
+    def stepped(**overrides):
+        torch.manual_seed(0)
+        training = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, **overrides)), "cpu", num_classes=2)
+        training.step(*batch())
+        return weights(training.generator), weights(training.discriminator)
+
+    same = lambda a, b: all(torch.equal(p, q) for p, q in zip(a, b))  # noqa: E731
+    base_g, base_d = stepped()
+    g, d = stepped(pack=1)
+    assert same(g, base_g) and same(d, base_d)
+    g, _ = stepped(pack=2)
+    assert not same(g, base_g)
 
 
 def test_pooled_mode_seeking_counts_layout_and_not_pixel_noise():

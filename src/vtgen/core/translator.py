@@ -72,7 +72,7 @@ class TranslatorTraining:
     ``input_channels`` is the generator's input: the 3 image channels plus those of a
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
-    ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``mode_seeking_per_pair``, ``statistics``, ``class_guidance``, ``skips``,
+    ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``mode_seeking_per_pair``, ``pack``, ``statistics``, ``class_guidance``, ``skips``,
     ``latent``, ``upsample``, ``padding``, ``semantic``, ``mismatch``, ``nce``, ``texture``, ``contextual`` (see :meth:`class_step`), ``d_lr_ratio`` (D's learning rate over
     G's), ``ema`` (:meth:`update_average`: the generator a run yields is the average of its weights), ``lr_decay``
     (:meth:`schedule_learning_rate`) and ``generator`` (:func:`vtgen.core.models.build_generator`: unet, the default, or resnet), and needs ``num_classes``; ``semantic`` > 0 needs ``guide``, a classifier of the target modality over the
@@ -90,8 +90,11 @@ class TranslatorTraining:
         size, kernel = settings["size"], settings["kernel"]
         self.generator = build_generator(settings, input_channels).to(self.device).train()
         if self.objective == "class_gan":
+            self.pack = int(settings.get("pack", 1))
+            if self.pack not in (1, 2):
+                raise ValueError(f"class_gan.pack must be 1 or 2 (the rows of a batch come in pairs of a class), got {self.pack}")
             self.discriminator = ProjectionDiscriminator(
-                num_classes, settings["ndf"], settings["patch_layers"], kernel,
+                num_classes, settings["ndf"], settings["patch_layers"], kernel, in_channels=3 * self.pack,
                 class_head=bool(settings.get("class_guidance", 0.0))).to(self.device).train()
         else:
             self.discriminator = build_discriminator(settings["discriminator"], size, settings["ndf"], kernel,
@@ -255,6 +258,8 @@ class TranslatorTraining:
         With ``nce`` w > 0, G += w·:func:`vtgen.core.patchnce.patch_nce_loss` between the generator's encoder features
         of G(x) and of x (levels :data:`NCE_LEVELS`; PatchNCE, Park et al. 2020): each output patch keeps the structure
         of the input patch at its place, with no pixel loss to a partner.
+        With ``pack`` 2 D judges rows 2k and 2k+1 together (:meth:`packed`: PacGAN, Lin et al. 2018), real pairs against
+        output pairs of the same class, in every term above that reads D.
         ``upsample`` 'resize' builds G's decoder from resize convolutions (no checkerboard without a pixel loss to hide it);
         ``padding`` 'reflect' pads G's encoder by reflection (no zero frame to draw border bands from).
         ``generator`` 'resnet' trains :class:`vtgen.core.models.ResnetGenerator` in place of the U-Net.
@@ -269,7 +274,7 @@ class TranslatorTraining:
         self.discriminator.requires_grad_(False)
         try:
             with self._autocast():
-                d_fake, class_fake = self.discriminator.judge(augment(fake), labels)
+                d_fake, class_fake = self.discriminator.judge(*self.packed(augment(fake), labels))
             loss_g_gan = self._loss(d_fake, True)
             loss_g = self._class_generator_loss(loss_g_gan, x, y, fake, labels, class_fake, augment)
             self.opt_g.zero_grad(set_to_none=True)
@@ -282,18 +287,28 @@ class TranslatorTraining:
         loss_g_l1 = F.l1_loss(fake.detach().float(), y)
         return dict(zip(LOSS_NAMES, (loss_d.detach(), loss_g_gan.detach(), loss_g_l1)))
 
+    def packed(self, images: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """What the class-pair discriminator judges: with ``pack`` 2, rows 2k and 2k+1 (two images of one class)
+        side by side along the channels as one sample of their class (PacGAN, Lin et al. 2018: a pair of outputs
+        that are too alike, or too unlike, is told from a pair of real images); with 1, ``images`` and ``labels``."""
+        if self.pack == 1:
+            return images, labels
+        n, channels, height, width = images.shape
+        return images.reshape(n // 2, 2 * channels, height, width), labels[0::2]
+
     def _class_discriminator_step(self, y, fake, labels, augment) -> torch.Tensor:
         """:meth:`class_step`'s discriminator update (adversarial, R1, mismatch and class-head terms); returns its loss."""
         cfg = self.settings
         r1, guidance, mismatch = cfg.get("r1", 0.0), cfg.get("class_guidance", 0.0), cfg.get("mismatch", 0.0)
         real = y.detach().requires_grad_(bool(r1))
         with self._autocast():
-            real_features = self.discriminator.features(augment(real))
-            d_real = self.discriminator.patch_logits(real_features, labels)
+            real_packs, pack_labels = self.packed(augment(real), labels)
+            real_features = self.discriminator.features(real_packs)
+            d_real = self.discriminator.patch_logits(real_features, pack_labels)
             class_real = self.discriminator.class_logits(real_features)
-            d_fake = self.discriminator(augment(fake.detach()), labels)
+            d_fake = self.discriminator(*self.packed(augment(fake.detach()), labels))
             if mismatch:
-                wrong = other_classes(labels, self.discriminator.num_classes)
+                wrong = other_classes(pack_labels, self.discriminator.num_classes)
                 d_wrong = self.discriminator.patch_logits(real_features, wrong)
         loss_d = 0.5 * (self._loss(d_real, True) + self._loss(d_fake, False))
         if mismatch:
@@ -301,7 +316,7 @@ class TranslatorTraining:
         if r1:
             loss_d = loss_d + r1 * r1_penalty(d_real, real)
         if guidance:
-            loss_d = loss_d + guidance * F.cross_entropy(class_real.float(), labels)
+            loss_d = loss_d + guidance * F.cross_entropy(class_real.float(), pack_labels)
         self.opt_d.zero_grad(set_to_none=True)
         loss_d.backward()
         self.opt_d.step()
@@ -315,7 +330,7 @@ class TranslatorTraining:
                                                      cfg.get("mode_seeking_per_pair", False)) \
             if seeking else loss_g_gan
         if guidance:
-            loss_g = loss_g + guidance * F.cross_entropy(class_fake.float(), labels)
+            loss_g = loss_g + guidance * F.cross_entropy(class_fake.float(), self.packed(fake, labels)[1])
         statistics, texture, contextual = (cfg.get(k, 0.0) for k in ("statistics", "texture", "contextual"))
         if statistics:
             loss_g = loss_g + statistics * statistics_loss(fake.float(), y)
