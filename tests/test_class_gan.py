@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from vtgen.core.augment import augment_policy, colour, cutout, diff_augment, translation
 from vtgen.core.models import ProjectionDiscriminator
 from vtgen.core.classifier import make_classifier, predict
-from vtgen.core.translator import (mode_seeking_loss, other_classes, r1_penalty, recognition_loss, statistics_loss,
+from vtgen.core.translator import (mode_seeking_loss, nearest_real_loss, other_classes, r1_penalty, recognition_loss, statistics_loss,
                                    TranslatorTraining)
 from vtgen.stages.train import _draw, build_guide, objective_settings, PairData, resolve_objective
 
@@ -234,6 +234,45 @@ def test_pack_1_adds_no_key_and_2_changes_the_step(default_params):
     assert same(g, base_g) and same(d, base_d)
     g, _ = stepped(pack=2)
     assert not same(g, base_g)
+
+
+def test_nearest_real_loss_pulls_each_real_image_to_its_nearest_output_of_its_class():
+    outputs = torch.zeros(4, 3, 8, 8)
+    outputs[1] = 1.0  # class 0: outputs 0 (black) and 1 (white); class 1: outputs 2 and 3 (black)
+    targets = torch.zeros(2, 3, 8, 8)
+    targets[0] = 0.9  # a class-0 real image near the white output: distance 0.1, not the black one's 0.9
+    targets[1] = 0.5  # a class-1 real image: both its class's outputs are black, 0.5 away; the white one is not its class
+    output_labels, target_labels = torch.tensor([0, 0, 1, 1]), torch.tensor([0, 1])
+    assert float(nearest_real_loss(outputs, targets, output_labels, target_labels)) == pytest.approx((0.1 + 0.5) / 2, rel=1e-5)
+    # the gradient reaches only the nearest output of each real image: the white one and one black one of class 1
+    outputs.requires_grad_(True)
+    nearest_real_loss(outputs, targets, output_labels, target_labels, pool=1).backward()
+    touched = [bool(outputs.grad[i].abs().sum() > 0) for i in range(4)]
+    assert touched[1] and not touched[0] and touched[2] + touched[3] == 1
+    # a real image with no output of its class adds nothing
+    assert float(nearest_real_loss(outputs.detach(), targets, output_labels, torch.tensor([0, 2]))) == pytest.approx(0.1 / 2, rel=1e-5)
+
+
+def test_nearest_0_adds_no_key_and_a_weight_changes_only_the_generator(default_params):
+    """``class_gan.nearest`` 0 (the default) adds no settings key (nor ``nearest_draws``), so the step is that of the
+    code before the term; a weight trains G on it and leaves D's step as it was."""
+    params = copy.deepcopy(default_params)
+    assert params["translation"]["class_gan"]["nearest"] == 0.0
+    settings = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")
+    assert "nearest" not in settings and "nearest_draws" not in settings
+
+    def stepped(**overrides):
+        torch.manual_seed(0)
+        training = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, **overrides)), "cpu", num_classes=2)
+        training.step(*batch())
+        return weights(training.generator), weights(training.discriminator)
+
+    same = lambda a, b: all(torch.equal(p, q) for p, q in zip(a, b))  # noqa: E731
+    base_g, base_d = stepped()
+    g, d = stepped(nearest=0.0, nearest_draws=3)
+    assert same(g, base_g) and same(d, base_d)
+    g, d = stepped(nearest=10.0, nearest_draws=2)
+    assert same(d, base_d) and not same(g, base_g)
 
 
 def test_pooled_mode_seeking_counts_layout_and_not_pixel_noise():

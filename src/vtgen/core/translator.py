@@ -338,6 +338,13 @@ class TranslatorTraining:
             loss_g = loss_g + texture * texture_loss(fake, y, self.texture_bank)
         if contextual:
             loss_g = loss_g + contextual * contextual_loss(fake, y, self.texture_bank)
+        nearest = cfg.get("nearest", 0.0)
+        if nearest:
+            with self._autocast():
+                more = [self.generator(x) for _ in range(int(cfg.get("nearest_draws", 2)) - 1)]
+            draws = 1 + len(more)
+            loss_g = loss_g + nearest * nearest_real_loss(torch.cat([fake, *more]).float(), y, labels.repeat(draws),
+                                                          labels, cfg.get("nearest_pool", 4))
         nce = cfg.get("nce", 0.0)
         if nce:
             with self._autocast():
@@ -419,6 +426,20 @@ def r1_penalty(real_logits: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
     per_image = real_logits.float().reshape(real_logits.shape[0], -1).mean(dim=1)
     (gradient,) = torch.autograd.grad(per_image.sum(), real, create_graph=True)
     return 0.5 * gradient.pow(2).sum(dim=tuple(range(1, gradient.dim()))).mean()
+
+
+def nearest_real_loss(outputs: torch.Tensor, targets: torch.Tensor, output_labels: torch.Tensor,
+                      target_labels: torch.Tensor, pool: int = 4) -> torch.Tensor:
+    """Mean over the real ``targets`` of the L1 distance, between ``pool`` x ``pool`` means, to the nearest of the
+    ``outputs`` of the target's class: implicit maximum likelihood estimation (Li & Malik 2018; conditional, Li et al.
+    2020), which pulls only the output nearest each real image towards it, so every real image of a class gets an
+    output near it (coverage) and no output is pulled to the class mean. A target with no output of its class adds 0."""
+    o = F.avg_pool2d(outputs, pool) if pool > 1 else outputs
+    t = F.avg_pool2d(targets.detach().float(), pool) if pool > 1 else targets.detach().float()
+    distance = (t[:, None] - o[None]).abs().mean(dim=(2, 3, 4))
+    same = target_labels.to(distance.device)[:, None] == output_labels.to(distance.device)[None, :]
+    nearest = distance.masked_fill(~same, float("inf")).min(dim=1).values
+    return torch.where(torch.isfinite(nearest), nearest, torch.zeros_like(nearest)).mean()
 
 
 def statistics_loss(outputs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
