@@ -14,6 +14,7 @@ from vtgen.core.classifier import make_classifier, predict
 from vtgen.core.translator import (mode_seeking_loss, nearest_real_loss, other_classes, r1_penalty, recognition_loss, statistics_loss,
                                    TranslatorTraining)
 from vtgen.stages.train import _draw, build_guide, objective_settings, PairData, resolve_objective
+from vtgen.io.params import set_keys, with_recipe
 
 SETTINGS = {"size": 32, "ngf": 8, "ndf": 8, "kernel": 4, "discriminator": "patch", "patch_layers": 2,
             "gan_loss": "bce", "l1_weight": 100.0, "optimizer": "adam", "lr": 2e-4, "betas": [0.5, 0.999],
@@ -254,12 +255,18 @@ def test_nearest_real_loss_pulls_each_real_image_to_its_nearest_output_of_its_cl
 
 
 def test_nearest_0_adds_no_key_and_a_weight_changes_only_the_generator(default_params):
-    """``class_gan.nearest`` 0 (the default) adds no settings key (nor ``nearest_draws``), so the step is that of the
-    code before the term; a weight trains G on it and leaves D's step as it was."""
+    """``class_gan.nearest`` 0 (T2V's default, and the fabric and quick recipes') adds no settings key (nor
+    ``nearest_draws``), so the step is that of the code before the term; V2T's default weight and draws are its
+    keys; a weight trains G on it and leaves D's step as it was."""
     params = copy.deepcopy(default_params)
-    assert params["translation"]["class_gan"]["nearest"] == 0.0
-    settings = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")
+    assert params["translation"]["class_gan"]["nearest"] == {"v2t": 3, "t2v": 0}
+    settings = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v")
     assert "nearest" not in settings and "nearest_draws" not in settings
+    v2t = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")
+    assert (v2t["nearest"], v2t["nearest_draws"]) == (3, 8)
+    for recipe in ("fabric", "quick"):
+        applied = with_recipe(set_keys(params, {"translation.recipe": recipe}))
+        assert "nearest" not in objective_settings(dict(SETTINGS), applied["translation"], "class_gan", "v2t")
 
     def stepped(**overrides):
         torch.manual_seed(0)
@@ -273,6 +280,30 @@ def test_nearest_0_adds_no_key_and_a_weight_changes_only_the_generator(default_p
     assert same(g, base_g) and same(d, base_d)
     g, d = stepped(nearest=10.0, nearest_draws=2)
     assert same(d, base_d) and not same(g, base_g)
+
+
+def test_nearest_draws_go_through_the_generator_in_one_pass_with_their_own_codes():
+    """``nearest_draws`` n > 1: one more generator call, on the batch repeated n - 1 times, so each extra draw
+    gets its own latent code; n = 1 makes no extra call."""
+    calls = []
+
+    def count(module, inputs, output):
+        calls.append((inputs[0].shape[0], output.detach().clone()))
+
+    for draws, extra in ((4, [3]), (1, [])):
+        torch.manual_seed(0)
+        training = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, nearest=10.0, nearest_draws=draws)), "cpu",
+                                      num_classes=2)
+        x, y, labels = batch()
+        calls.clear()
+        handle = training.generator.register_forward_hook(count)
+        training.step(x, y, labels)
+        handle.remove()
+        sizes = [n // len(x) for n, _ in calls]
+        assert sizes[1:] == extra, (draws, sizes)  # the first call is the step's own output
+        if extra:
+            repeated = calls[1][1].view(3, len(x), *calls[1][1].shape[1:])
+            assert not torch.equal(repeated[0], repeated[1])  # same inputs, new codes: different draws
 
 
 def test_pooled_mode_seeking_counts_layout_and_not_pixel_noise():

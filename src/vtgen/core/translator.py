@@ -340,11 +340,13 @@ class TranslatorTraining:
             loss_g = loss_g + contextual * contextual_loss(fake, y, self.texture_bank)
         nearest = cfg.get("nearest", 0.0)
         if nearest:
-            with self._autocast():
-                more = [self.generator(x) for _ in range(int(cfg.get("nearest_draws", 2)) - 1)]
-            draws = 1 + len(more)
-            loss_g = loss_g + nearest * nearest_real_loss(torch.cat([fake, *more]).float(), y, labels.repeat(draws),
-                                                          labels, cfg.get("nearest_pool", 4))
+            draws = int(cfg.get("nearest_draws", 2))
+            outputs = fake
+            if draws > 1:  # the extra draws in one generator pass over the repeated batch (one launch per layer on a GPU)
+                with self._autocast():
+                    outputs = torch.cat([fake, self.generator(x.repeat(draws - 1, 1, 1, 1))])
+            loss_g = loss_g + nearest * nearest_real_loss(outputs.float(), y, labels.repeat(draws), labels,
+                                                          cfg.get("nearest_pool", 4))
         nce = cfg.get("nce", 0.0)
         if nce:
             with self._autocast():
