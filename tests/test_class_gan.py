@@ -263,7 +263,7 @@ def test_nearest_0_adds_no_key_and_a_weight_changes_only_the_generator(default_p
     settings = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v")
     assert "nearest" not in settings and "nearest_draws" not in settings
     v2t = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")
-    assert (v2t["nearest"], v2t["nearest_draws"]) == (3, 8)
+    assert (v2t["nearest"], v2t["nearest_draws"]) == (3, 4)
     for recipe in ("fabric", "quick"):
         applied = with_recipe(set_keys(params, {"translation.recipe": recipe}))
         assert "nearest" not in objective_settings(dict(SETTINGS), applied["translation"], "class_gan", "v2t")
