@@ -57,8 +57,6 @@ from vtgen.io.checkpoints import load_translator
 from vtgen.io.images import labelled_sheet, read_tiles, write_png
 from vtgen.io.params import model_settings, validate_params, with_recipe
 from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
-from vtgen.core.realism import RealBalls
-from vtgen.core.translation import translate_precise
 from vtgen.stages.generate import translate
 from vtgen.stages.score import KID_SUBSETS, kid_subset_size, mean_over_classes
 from vtgen.stages.train import (build_conditioning, build_guide, build_referee, load_pair_data, objective_settings,
@@ -92,7 +90,7 @@ def class_diversity(generated: torch.Tensor, real: torch.Tensor, classes_gen: np
 
 
 def run_variant(params, pairs, splits, direction, overrides, seed, iterations, threads, root, context,
-                truncations=(1.0,), redraws: int = 0) -> list[dict]:
+                truncations=(1.0,)) -> list[dict]:
     """Train one variant at one seed; one result per truncation psi of the test translations' latent codes."""
     settings = dict(model_settings(params), iterations=iterations)
     run = dict(params["translation"], seed=seed, threads=threads, checkpoint_every=10**9, resume=False)
@@ -132,9 +130,8 @@ def run_variant(params, pairs, splits, direction, overrides, seed, iterations, t
     labels = conditioning.labels(list(input_classes)) if conditioning.needs_labels else None
     results = []
     for psi in truncations:
-        generated, kept = translate_precise(result.generator.eval(), inputs, context["real_balls"], redraws,
-                                            conditioning=conditioning, labels=labels, truncation=psi)
-        print(f"# redraws {redraws}: {int((kept > 0).sum())} of {len(kept)} outputs from a later draw", flush=True)
+        generated = translate(result.generator.eval(), inputs, conditioning=conditioning, labels=labels,
+                              truncation=psi)
         results.append({"objective": objective, "seconds": seconds, "generated": generated, "truncation": psi,
                         **goal_numbers(generated, input_classes, context)})
     return results
@@ -275,9 +272,6 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--truncation", type=float, nargs="+", default=[1.0],
                         help="psi values the test translations' latent codes are scaled by (one row each; 1 = plain draw)")
-    parser.add_argument("--redraws", type=int, default=0,
-                        help="more latent codes per test input where a draw is outside the real targets' balls "
-                             "(generate.redraws; vtgen.core.translation.translate_precise)")
     parser.add_argument("--sheets", type=Path, help="folder for one PNG per run, variant and seed: per class, test inputs, "
                                                    "their translations and real test targets (and the outputs as .pt)")
     args = parser.parse_args()
@@ -290,7 +284,6 @@ def main() -> None:
     pairs = read_table(root / "data" / "pairs" / f"{args.direction}.parquet", PAIR_COLUMNS, "pairs")
     splits = read_table(root / "data" / "pairs" / "splits.parquet", SPLIT_COLUMNS, "splits")
     context = prepare_context(params, pairs, splits, args.direction, root)
-    context["real_balls"] = RealBalls(context["train_targets"])  # what generate.redraws checks draws against
     (acc, n), (in_acc, in_n) = context["real_accuracy"], context["input_accuracy"]
     recipe = params["translation"]["recipe"]
     applied = "" if recipe == "none" else f" (the run folder's recipe {recipe!r} applied, its iterations replaced)"
@@ -308,17 +301,13 @@ def main() -> None:
         conditioning = meta["conditioning"]
         labels = conditioning.labels(list(input_classes)) if conditioning.needs_labels else None
         for psi in args.truncation:
-            generated, kept = translate_precise(generator, inputs, context["real_balls"], args.redraws,
-                                                conditioning=conditioning, labels=labels, truncation=psi)
+            generated = translate(generator, inputs, conditioning=conditioning, labels=labels, truncation=psi)
             result = {"seconds": 0.0, **goal_numbers(generated, input_classes, context)}
-            label = f"{args.model.parent.parent.parent.name} model, psi {psi:g}, redraws {args.redraws}"
-            lines.append(row(label, "-", result))
-            print(f"# {label}: {int((kept > 0).sum())} of {len(kept)} outputs from a later draw", flush=True)
+            lines.append(row(f"{args.model.parent.parent.parent.name} model, psi {psi:g}", "-", result))
             if args.sheets:
                 args.sheets.mkdir(parents=True, exist_ok=True)
-                sheet = args.sheets / f"{root.name}_{args.direction}_model_psi{psi:g}_redraws{args.redraws}.png"
+                sheet = args.sheets / f"{root.name}_{args.direction}_model_psi{psi:g}.png"
                 write_sheet(sheet, generated, context)
-                torch.save(generated, sheet.with_suffix(".pt"))
             print(lines[-1], flush=True)
     for path in args.outputs:
         generated = torch.load(path)
@@ -331,7 +320,7 @@ def main() -> None:
         name, overrides = parse_variant(text)
         for seed in args.seeds:
             for result in run_variant(params, pairs, splits, args.direction, overrides, seed, args.iterations,
-                                      args.threads, root, context, args.truncation, args.redraws):
+                                      args.threads, root, context, args.truncation):
                 psi = result["truncation"]
                 label = name if psi == 1.0 else f"{name}, psi {psi:g}"
                 lines.append(row(f"{label} ({result['objective']})", seed, result))

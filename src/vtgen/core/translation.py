@@ -8,7 +8,6 @@ import torch
 from vtgen.core.conditioning import Conditioning
 from vtgen.core.gan import to_model_range, to_uint8
 from vtgen.core.models import fixed_codes
-from vtgen.core.realism import RealBalls
 
 
 @torch.no_grad()
@@ -38,36 +37,3 @@ def translate(generator: torch.nn.Module, images: torch.Tensor, batch_size: int 
         z = None if codes is None else codes[i:i + batch_size].to(device)
         out.append(to_uint8(generator(x, z)).cpu())
     return torch.cat(out) if out else images.clone()
-
-
-REDRAW_SEED_STRIDE = 10**7  # draw d of a call seeded s uses seed s + d * stride (more than any set's inputs)
-
-
-@torch.no_grad()
-def translate_precise(generator: torch.nn.Module, images: torch.Tensor, real: RealBalls, redraws: int,
-                      batch_size: int = 32, conditioning: Conditioning | None = None,
-                      labels: torch.Tensor | None = None, seed: int = 0,
-                      truncation: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`translate` with up to ``redraws`` more latent codes per input: each input keeps its first draw whose
-    realism score against the real target images (``real``, :class:`vtgen.core.realism.RealBalls`) is at least 1,
-    or, where none of the 1 + ``redraws`` is, its highest-scoring one (Kynkäänniemi et al. 2019's realism score
-    used to reject outliers). Draw 0 is :func:`translate`'s own, so inputs whose first draw passes are unchanged.
-    Redraws translate only the inputs still open, with codes seeded ``seed + d * REDRAW_SEED_STRIDE`` in their
-    order. Returns (outputs, draw index kept per input, int64). The class is never read: ``real`` pools every class."""
-    outputs = translate(generator, images, batch_size, conditioning, labels, seed, truncation)
-    kept = torch.zeros(len(images), dtype=torch.int64)
-    if redraws <= 0 or generator.latent == 0 or truncation == 0 or not len(images):
-        return outputs, kept  # one draw, or every draw is the same
-    best = real.score(outputs)
-    for draw in range(1, redraws + 1):
-        open_ = best < 1.0
-        if not open_.any():
-            break
-        index = open_.nonzero().flatten()  # only the inputs still open are drawn again, in their order
-        candidates = translate(generator, images[index], batch_size, conditioning,
-                               None if labels is None else labels[index], seed + draw * REDRAW_SEED_STRIDE, truncation)
-        scores = real.score(candidates)
-        better = scores > best[index]
-        chosen = index[better]
-        outputs[chosen], best[chosen], kept[chosen] = candidates[better], scores[better], draw
-    return outputs, kept
