@@ -764,3 +764,51 @@ def test_bf16_precision_trains_and_the_default_is_the_plain_fp32_step():
     assert bf16.train_loss != fp32.train_loss  # the forward passes ran in bf16
     with pytest.raises(ValueError, match="precision must be fp32 or bf16"):
         train_classifier(train_x, train_y, test_x, test_y, 3, settings, seed=0, precision="fp16")
+
+
+def test_weight_averaging_keeps_the_mean_of_the_last_epochs_weights_and_zero_is_todays_run():
+    train_x, train_y = stripes(6, seed=0)
+    test_x, test_y = stripes(2, seed=1)
+    plain = train_classifier(train_x, train_y, test_x, test_y, 3, dict(TINY, epochs=3), seed=0)
+    explicit = train_classifier(train_x, train_y, test_x, test_y, 3,
+                                dict(TINY, epochs=3, average_epochs=0, lr_schedule="constant"), seed=0)
+    assert plain.train_loss == explicit.train_loss and plain.test_accuracy == explicit.test_accuracy
+    for name, value in plain.model.state_dict().items():
+        assert torch.equal(value, explicit.model.state_dict()[name]), name
+    # averaging does not change the trajectory: the average of epochs 2 and 3 is the mean of the weights of the
+    # runs that stop after epoch 2 and after epoch 3
+    two = train_classifier(train_x, train_y, test_x, test_y, 3, dict(TINY, epochs=2), seed=0)
+    averaged = train_classifier(train_x, train_y, test_x, test_y, 3, dict(TINY, epochs=3, average_epochs=2), seed=0)
+    assert averaged.train_loss == plain.train_loss
+    assert averaged.test_accuracy[0] == plain.test_accuracy[0]  # epoch 1 is before the window
+    moved = 0
+    for name, weight in averaged.model.named_parameters():
+        expected = (dict(two.model.named_parameters())[name] + dict(plain.model.named_parameters())[name]) / 2
+        assert torch.allclose(weight, expected, atol=1e-6), name
+        moved += not torch.allclose(weight, dict(plain.model.named_parameters())[name])
+    assert moved > 0
+    with pytest.raises(ValueError, match="average_epochs"):
+        train_classifier(train_x, train_y, test_x, test_y, 3, dict(TINY, average_epochs=-1), seed=0)
+
+
+@pytest.mark.filterwarnings("ignore:Detected call of")
+def test_cosine_schedule_lowers_the_rate_each_epoch_by_the_formula():
+    from vtgen.core.classifier import _lr_schedule
+
+    weight = torch.nn.Parameter(torch.zeros(1))
+    optimiser = torch.optim.Adam([weight], lr=0.01)
+    schedule = _lr_schedule(optimiser, "cosine", 4)
+    rates = [optimiser.param_groups[0]["lr"]]
+    for _ in range(3):
+        schedule.step()
+        rates.append(optimiser.param_groups[0]["lr"])
+    assert rates == pytest.approx([0.01 * (1 + np.cos(np.pi * e / 4)) / 2 for e in range(4)])
+    assert _lr_schedule(optimiser, "constant", 4) is None
+    with pytest.raises(ValueError, match="lr_schedule"):
+        _lr_schedule(optimiser, "step", 4)
+    # in training: a lower rate in the later epochs changes the run
+    train_x, train_y = stripes(6, seed=0)
+    test_x, test_y = stripes(2, seed=1)
+    plain = train_classifier(train_x, train_y, test_x, test_y, 3, dict(TINY, epochs=2), seed=0)
+    cosine = train_classifier(train_x, train_y, test_x, test_y, 3, dict(TINY, epochs=2, lr_schedule="cosine"), seed=0)
+    assert cosine.train_loss[0] == plain.train_loss[0] and cosine.train_loss[1] != plain.train_loss[1]

@@ -443,6 +443,24 @@ def _evaluate(model: AlexNet, evaluated: dict, scaled: bool, precision: str, run
         run.eval_images += len(y)
 
 
+def _lr_schedule(optimiser, name: str, epochs: int):
+    """``constant`` (None: the optimiser's rate throughout) or ``cosine``: the rate of epoch ``e`` (1-based) is
+    ``lr * (1 + cos(pi * (e - 1) / epochs)) / 2`` (Loshchilov & Hutter 2017, without restarts), stepped per epoch."""
+    if name == "constant":
+        return None
+    if name != "cosine":
+        raise ValueError(f"lr_schedule must be constant or cosine, got {name!r}")
+    return torch.optim.lr_scheduler.LambdaLR(optimiser, lambda done: (1 + math.cos(math.pi * done / epochs)) / 2)
+
+
+def _average_epochs(settings: Mapping, epochs: int) -> int:
+    """How many final epochs' weights are averaged (``average_epochs``, default 0 = none), at most ``epochs``."""
+    count = settings.get("average_epochs", 0)
+    if isinstance(count, bool) or not isinstance(count, int) or count < 0:
+        raise ValueError(f"average_epochs must be a whole number >= 0, got {count!r}")
+    return min(count, epochs)
+
+
 def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch.Tensor, test_y: torch.Tensor,
                      num_classes: int, settings: Mapping, seed: int, device: str | torch.device = "cpu",
                      extra_eval: Mapping[str, tuple[torch.Tensor, torch.Tensor]] | None = None,
@@ -486,6 +504,9 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
     evaluated = {name: (data.prepare(x, device), y.long().to(device))
                  for name, (x, y) in {_TEST: (test_x, test_y), **extra_eval}.items()}
     stopper = EarlyStopping(int(settings.get("patience", 0)) if "val" in extra_eval else 0)
+    schedule = _lr_schedule(optimiser, settings.get("lr_schedule", "constant"), epochs)
+    average_from = epochs - _average_epochs(settings, epochs) + 1  # first epoch in the weight average
+    averaged = None
     sampler = torch.Generator().manual_seed(seed)
     run = ClassifierRun([], {name: [] for name in extra_eval}, [], 0.0, model, loaded)
     predictions: dict = {}
@@ -498,13 +519,21 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
             mean_loss, order = _train_epoch(model, optimiser, data, sampler, batch_size, precision, epoch_images)
             if not math.isfinite(mean_loss):
                 raise TrainingDiverged(epoch, seed, mean_loss)
+            if schedule is not None:
+                schedule.step()
             run.train_loss.append(mean_loss)
             run.train_images += data.count if epoch_images is None else epoch_images
             norm_started = time.perf_counter()
+            evaluated_model = model
+            if epoch >= average_from:  # stochastic weight averaging: evaluate the mean of the weights so far
+                if averaged is None:
+                    averaged = torch.optim.swa_utils.AveragedModel(model)
+                averaged.update_parameters(model)
+                evaluated_model = averaged.module
             with _autocast(device, precision):
-                refresh_norm_statistics(model, data.images[order[:NORM_IMAGES]], scaled=data.prescale)
+                refresh_norm_statistics(evaluated_model, data.images[order[:NORM_IMAGES]], scaled=data.prescale)
             eval_started = time.perf_counter()
-            _evaluate(model, evaluated, data.prescale, precision, run, predictions)
+            _evaluate(evaluated_model, evaluated, data.prescale, precision, run, predictions)
             done = time.perf_counter()
             run.train_seconds += norm_started - epoch_started
             run.norm_seconds += eval_started - norm_started
@@ -514,6 +543,7 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
                                  **{name: values[-1] for name, values in run.extra_accuracy.items()}})
             if stopper.should_stop(epoch, run.extra_accuracy["val"][-1] if "val" in extra_eval else math.nan):
                 break
+    model = averaged.module if averaged is not None else model
     model.eval()
     run.model, run.seconds = model.cpu(), time.perf_counter() - started
     run.test_predictions = predictions[_TEST].cpu() if predictions else None
