@@ -469,7 +469,8 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
                      val: tuple[torch.Tensor, torch.Tensor] | None = None, precision: str = "fp32",
                      epoch_images: int | None = None) -> ClassifierRun:
     """Train :func:`make_classifier` (``settings``: size, width, epochs, batch_size, lr; optional flip, default
-    True, and patience, default 0).
+    True, patience, default 0, lr_schedule, default constant (:func:`_lr_schedule`), and average_epochs,
+    default 0 (:func:`_average_epochs`)).
 
     Images are uint8 ``N x 3 x size x size``, labels integers in ``[0, num_classes)``. Each epoch
     visits the training set once in a seeded shuffled order, in mini-batches (the last one may be
@@ -477,7 +478,10 @@ def train_classifier(train_x: torch.Tensor, train_y: torch.Tensor, test_x: torch
     with probability 1/2. With ``epoch_images`` an epoch is that many image visits instead (consecutive
     shuffled passes, the last cut short), so that runs on sets of different sizes take equal steps.
     After every epoch the model is evaluated (eval mode, no grad) on the test set, on each
-    ``extra_eval`` set and on ``val``, and ``progress(epoch, row)`` is called.
+    ``extra_eval`` set and on ``val``, and ``progress(epoch, row)`` is called. With average_epochs N the model
+    evaluated from epoch ``epochs - N + 1`` on, and returned, is the running mean of the weights after each of
+    those epochs (stochastic weight averaging; its batch-norm statistics recomputed), while training goes on
+    from the unaveraged weights.
     With a non-empty ``val`` and ``patience`` > 0, training ends once ``patience`` epochs passed
     without a new best validation accuracy (:class:`EarlyStopping`); otherwise it runs ``epochs``.
     ``precision`` bf16 runs forward passes under bf16 autocast (fp32: none). Everything random derives
