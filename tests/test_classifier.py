@@ -683,6 +683,25 @@ def test_policy_without_a_validation_split_is_real_only_and_says_why(tmp_path, m
     assert policy["test"]["accuracy"] == summary["settings"]["real"]["final_mean"]
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("class_pairs_only, expected", [(True, [0, 1]), (False, [0]), (None, [0])])
+def test_seeds_follow_the_kind_of_pairs(tmp_path, monkeypatch, class_pairs_only, expected):
+    """classify.seeds as a mapping: the class_pairs list where the pairs summary says every training pair is a
+    class pair, the paired list where it does not or where there is no summary; summary.json says which and why."""
+    monkeypatch.chdir(tmp_path)
+    noise_layout(tmp_path, val=0, noise_per_input=1)
+    if class_pairs_only is not None:
+        (tmp_path / "data/pairs/summary.json").write_text(json.dumps({"data_kind": {"class_pairs_only": class_pairs_only}}))
+    params = classify_params(epochs=1, seeds={"paired": [0], "class_pairs": [0, 1]})
+    summary = run_classify(params, "visual", "data/pairs", "data/generated", "out/visual", progress=False)
+    table = pd.read_parquet(tmp_path / "out/visual/accuracy.parquet")
+    assert sorted(table["seed"].unique()) == expected and summary["seeds"]["seeds"] == expected
+    assert summary["settings"]["real"]["seeds"] == len(expected)
+    why = {True: "every training pair is a class pair", False: "some training pairs are pixel or name pairs",
+           None: "no pairs summary"}[class_pairs_only]
+    assert why in summary["seeds"]["why"]
+
+
 def test_paired_difference_counts_groups_not_images():
     from vtgen.core.generated_policy import paired_difference
 

@@ -191,3 +191,22 @@ def test_a_stage_command_runs_with_the_recipe_applied(default_params, tmp_path, 
     assert applied["translation"]["class_gan"]["iterations"] == 12000
     assert applied["generate"]["truncation"] == {"v2t": 0, "t2v": 1}
     assert json.loads(json.dumps(applied))["translation"]["recipe"] == "fabric"
+
+
+def test_classify_seeds_follow_the_data_kind():
+    """A list of seeds is used as set; a mapping gives class_pairs only where every training pair is a class pair."""
+    from vtgen.io.params import classify_seeds
+
+    mapping = {"paired": [0, 1, 2], "class_pairs": [0, 1, 2, 3, 4]}
+    assert classify_seeds([7, 8], {"class_pairs_only": True}) == ([7, 8], "as set")
+    assert classify_seeds(mapping, {"class_pairs_only": True})[0] == [0, 1, 2, 3, 4]
+    assert classify_seeds(mapping, {"class_pairs_only": False})[0] == [0, 1, 2]
+    assert classify_seeds(mapping, None) == ([0, 1, 2], "no pairs summary, so the paired list")
+
+
+def test_classify_seeds_mapping_needs_both_lists(default_params):
+    """A mapping without one of its two lists is refused, naming the key."""
+    params = copy.deepcopy(default_params)
+    params["classify"]["seeds"] = {"paired": [0]}
+    with pytest.raises(ValueError, match="classify.seeds"):
+        validate_params(params)

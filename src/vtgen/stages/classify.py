@@ -72,6 +72,7 @@ from vtgen.core.domain import direction_producing, DIRECTIONS
 from vtgen.io.tables import SPLIT_COLUMNS
 from vtgen.io.images import read_tiles
 from vtgen.core.device import resolve_device, resolve_precision
+from vtgen.io.params import classify_seeds
 
 SETTINGS = ("real", "real+generated", "low-data real", "low-data real+generated")
 ACCURACY_COLUMNS = {
@@ -314,6 +315,12 @@ def _write_outputs(tmp: Path, table: pd.DataFrame, summary: dict, per_setting: d
     plot_curves(tmp / "curves.png", summary["modality"], per_setting, gan_test, message)
 
 
+def pairs_data_kind(pairs_dir: Path) -> dict | None:
+    """The pairs stage's ``data_kind`` (pairs_dir/summary.json), or None where the folder has no summary."""
+    path = pairs_dir / "summary.json"
+    return json.loads(path.read_text()).get("data_kind") if path.is_file() else None
+
+
 def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_root: str | Path, out_dir: str | Path,
                  progress: bool = True) -> dict:
     """Stage entry: train and test the classifiers of ``modality``; write ``out_dir`` atomically.
@@ -329,12 +336,15 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     ``precision`` and ``throughput``: training and evaluation images per second) and curves.png;
     prints a warning line per flagged setting. A non-finite training loss raises RuntimeError naming
     modality, setting, seed and epoch. With fewer than 2 classes nothing is trained: the tables are
-    empty and summary.json's ``status`` says why; otherwise ``status`` is "ok".
+    empty and summary.json's ``status`` says why; otherwise ``status`` is "ok". The seeds are ``classify.seeds``
+    as :func:`vtgen.io.params.classify_seeds` reads them for the pairs summary's ``data_kind`` (summary.json's
+    ``seeds``: the list and why).
     """
-    cfg = params["classify"]
+    pairs_dir, generated_root, out_dir = Path(pairs_dir), Path(generated_root), Path(out_dir)
+    seeds, seeds_why = classify_seeds(params["classify"]["seeds"], pairs_data_kind(pairs_dir))
+    cfg = dict(params["classify"], seeds=seeds)
     torch.set_num_threads(cfg["threads"])
     direction = direction_producing(modality)
-    pairs_dir, generated_root, out_dir = Path(pairs_dir), Path(generated_root), Path(out_dir)
     splits = read_table(pairs_dir / "splits.parquet", SPLIT_COLUMNS, "the split table of the pairs stage")
     generated_file = generated_root / direction / "generated.parquet"
     generated = read_table(generated_file, GENERATED_COLUMNS,
@@ -343,7 +353,7 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     real = splits[splits["modality"] == modality]
     classes = sorted(real[real["split"] == "train"]["class"].unique())
     summary: dict = {"modality": modality, "direction": direction, "classes": classes, "params": dict(cfg),
-                     "weights": cfg["weights"] or None, "notes": []}
+                     "seeds": {"seeds": seeds, "why": seeds_why}, "weights": cfg["weights"] or None, "notes": []}
     if len(classes) < 2:
         return _not_applicable(summary, modality, len(real[real["split"] == "train"]), out_dir)
     sets = _image_sets(real, generated, classes, cfg["size"], direction, summary["notes"])
@@ -658,7 +668,7 @@ def _print_result(summary: dict, modality: str, seeds: int, out_dir: Path) -> No
         print(f"classify {modality}: policy '{policy['chosen']}' ({policy['reason']}): test accuracy "
               f"{test['accuracy']:.3f} {_bracket(test['interval'])} against real only {test['real_accuracy']:.3f} "
               f"{_bracket(test['real_interval'])} (n = {test['images']} test images)")
-    print(f"classify {modality}: final test accuracy over {seeds} seed(s): {finals}{gan_text} "
+    print(f"classify {modality}: final test accuracy over {seeds} seed(s) ({summary['seeds']['why']}): {finals}{gan_text} "
           f"({len(summary['classes'])} classes, {summary['wall_seconds']:.0f} s training; {_speed_text(summary)}) -> {out_dir}")
 
 

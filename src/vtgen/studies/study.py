@@ -33,7 +33,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from vtgen.io.params import model_settings, resolve_key, set_keys, validate_params
+from vtgen.io.params import classify_seeds, model_settings, resolve_key, set_keys, validate_params
 from vtgen.io.provenance import code_fingerprint
 from vtgen.io.images import atomic_output_dir
 from vtgen.io.tables import read_table
@@ -143,7 +143,8 @@ def gan_test(variant: dict, splits: pd.DataFrame, generated: pd.DataFrame, modal
     key = json.dumps([list(train["path"]), list(test["path"]), cfg], sort_keys=True, default=str)
     if key not in _JUDGES:
         test_x, test_y = load(test, "path")
-        run = train_classifier(*load(train, "path"), test_x, test_y, len(classes), cfg, cfg["seeds"][0])
+        seed = classify_seeds(cfg["seeds"], None)[0][0]  # the studies render aligned data: the paired list
+        run = train_classifier(*load(train, "path"), test_x, test_y, len(classes), cfg, seed)
         _JUDGES[key] = (run.model, run.test_accuracy[-1])
     model, real_accuracy = _JUDGES[key]
     fake_x, fake_y = load(fake, "output_path")
