@@ -10,7 +10,10 @@ For a lent GPU machine (the project never needs one). Prints one markdown table 
 * **classifier** - ``train_classifier`` (the classify stage's AlexNet, params.yaml's ``classify``
   section) for ``--epochs`` epochs on random uint8 tiles of the size of the 10x scaling run's tactile job
   (3,360 training, 960 test tiles, 10 classes): training and evaluation images per second, fp32 and
-  bf16. Random tiles: the accuracies say nothing; only the speed does.
+  bf16. Random tiles: the accuracies say nothing; only the speed does;
+* **classifier switches** - the same classifier under ``lr_schedule`` constant and cosine and with
+  ``average_epochs`` 3 (weight averaging, batch-norm statistics recomputed on the device), fp32 and bf16, on
+  separable colour tiles: each run should read the 60 test tiles and keep its batch-norm statistics finite.
 
     python benchmarks/gpu_check.py                 # on the GPU machine, from the repository root
     python benchmarks/gpu_check.py --device cpu --steps 5 --warmup 2 --epochs 1   # the same code on a CPU
@@ -78,6 +81,37 @@ def classifier_speed(cfg: dict, device: torch.device, precision: str, epochs: in
             "eval_per_s": run.eval_images / run.eval_seconds, "final_loss": run.train_loss[-1]}
 
 
+def colour_tiles(per_class: int, classes: int, size: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Separable uint8 tiles: class k is one mean colour per class plus Gaussian noise (std 25 grey levels)."""
+    images, labels = [], []
+    for k in range(classes):
+        colour = torch.tensor([(37 * k) % 256, (91 * k + 40) % 256, (151 * k + 80) % 256], dtype=torch.float32)
+        noisy = colour.view(1, 3, 1, 1) + 25 * torch.randn(per_class, 3, size, size, generator=generator)
+        images.append(noisy.clamp(0, 255).to(torch.uint8))
+        labels += [k] * per_class
+    return torch.cat(images), torch.tensor(labels)
+
+
+def classifier_switches(cfg: dict, device: torch.device, epochs: int) -> list[dict]:
+    """``train_classifier`` under each learning-rate schedule and with weight averaging (its batch-norm statistics
+    recomputed on ``device``), fp32 and bf16, on separable tiles (6 classes, 240 training and 60 test): every run
+    should read the test tiles and keep its batch-norm statistics finite."""
+    generator = torch.Generator().manual_seed(0)
+    train_x, train_y = colour_tiles(40, 6, cfg["size"], generator)
+    test_x, test_y = colour_tiles(10, 6, cfg["size"], generator)
+    rows = []
+    for schedule, average in (("constant", 0), ("cosine", 0), ("cosine", 3)):
+        for precision in ("fp32", "bf16"):
+            settings = dict(cfg, epochs=max(epochs, average + 1), lr_schedule=schedule, average_epochs=average)
+            run = train_classifier(train_x, train_y, test_x, test_y, 6, settings, seed=0, device=device,
+                                   precision=precision)
+            statistics_ = [b for name, b in run.model.state_dict().items() if "running" in name]
+            rows.append({"schedule": schedule, "average": average, "precision": precision,
+                         "accuracy": run.test_accuracy[-1],
+                         "finite": bool(statistics_) and all(bool(torch.isfinite(b).all()) for b in statistics_)})
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cuda")
@@ -114,6 +148,13 @@ def main() -> None:
         r = classifier_speed(cfg, device, precision, args.epochs)
         print(f"| {precision} | {r['seconds']:.1f} | {r['train_per_s']:.0f} | {r['eval_per_s']:.0f} | "
               f"{r['final_loss']:.3f} |", flush=True)
+
+    print(f"\nclassifier switches: separable colour tiles, 6 classes, 240 training and 60 test, {max(args.epochs, 4)} "
+          "epochs\n")
+    print("| lr_schedule | average_epochs | precision | test accuracy (n 60) | batch-norm statistics finite |")
+    print("|---|---|---|---|---|")
+    for r in classifier_switches(cfg, device, max(args.epochs, 4)):
+        print(f"| {r['schedule']} | {r['average']} | {r['precision']} | {r['accuracy']:.3f} | {r['finite']} |", flush=True)
 
 
 if __name__ == "__main__":
