@@ -195,7 +195,7 @@ def test_a_stage_command_runs_with_the_recipe_applied(default_params, tmp_path, 
 
 def test_classify_seeds_follow_the_data_kind():
     """A list of seeds is used as set; a mapping gives class_pairs only where every training pair is a class pair."""
-    from vtgen.io.params import classify_seeds
+    from vtgen.stages.classify import classify_seeds
 
     mapping = {"paired": [0, 1, 2], "class_pairs": [0, 1, 2, 3, 4]}
     assert classify_seeds([7, 8], {"class_pairs_only": True}) == ([7, 8], "as set")

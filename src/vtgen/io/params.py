@@ -242,19 +242,6 @@ def with_recipe(params: dict, data_kind: dict | None = None) -> dict:
     return validate_params(set_keys(named, params["recipes"][chosen]), source=f"params.yaml with recipe '{chosen}'")
 
 
-def classify_seeds(seeds: list[int] | dict, data_kind: dict | None) -> tuple[list[int], str]:
-    """``classify.seeds`` as the classify stage runs them, and why: a list as set; a mapping gives its
-    ``class_pairs`` list when every training pair is a class pair (``data_kind`` of the pairs summary), else its
-    ``paired`` list (also without a pairs summary)."""
-    if isinstance(seeds, list):
-        return seeds, "as set"
-    if data_kind is None:
-        return seeds["paired"], "no pairs summary, so the paired list"
-    if data_kind.get("class_pairs_only"):
-        return seeds["class_pairs"], "every training pair is a class pair"
-    return seeds["paired"], "some training pairs are pixel or name pairs"
-
-
 def model_settings(params: dict) -> dict:
     """The preset block that translation.preset names: network and training settings."""
     return params["presets"][params["translation"]["preset"]]

@@ -72,7 +72,6 @@ from vtgen.core.domain import direction_producing, DIRECTIONS
 from vtgen.io.tables import SPLIT_COLUMNS
 from vtgen.io.images import read_tiles
 from vtgen.core.device import resolve_device, resolve_precision
-from vtgen.io.params import classify_seeds
 
 SETTINGS = ("real", "real+generated", "low-data real", "low-data real+generated")
 ACCURACY_COLUMNS = {
@@ -315,6 +314,19 @@ def _write_outputs(tmp: Path, table: pd.DataFrame, summary: dict, per_setting: d
     plot_curves(tmp / "curves.png", summary["modality"], per_setting, gan_test, message)
 
 
+def classify_seeds(seeds: list[int] | dict, data_kind: dict | None) -> tuple[list[int], str]:
+    """``classify.seeds`` as the classify stage runs them, and why: a list as set; a mapping gives its
+    ``class_pairs`` list when every training pair is a class pair (``data_kind`` of the pairs summary), else its
+    ``paired`` list (also without a pairs summary)."""
+    if isinstance(seeds, list):
+        return seeds, "as set"
+    if data_kind is None:
+        return seeds["paired"], "no pairs summary, so the paired list"
+    if data_kind.get("class_pairs_only"):
+        return seeds["class_pairs"], "every training pair is a class pair"
+    return seeds["paired"], "some training pairs are pixel or name pairs"
+
+
 def pairs_data_kind(pairs_dir: Path) -> dict | None:
     """The pairs stage's ``data_kind`` (pairs_dir/summary.json), or None where the folder has no summary."""
     path = pairs_dir / "summary.json"
@@ -337,7 +349,7 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     prints a warning line per flagged setting. A non-finite training loss raises RuntimeError naming
     modality, setting, seed and epoch. With fewer than 2 classes nothing is trained: the tables are
     empty and summary.json's ``status`` says why; otherwise ``status`` is "ok". The seeds are ``classify.seeds``
-    as :func:`vtgen.io.params.classify_seeds` reads them for the pairs summary's ``data_kind`` (summary.json's
+    as :func:`classify_seeds` reads them for the pairs summary's ``data_kind`` (summary.json's
     ``seeds``: the list and why).
     """
     pairs_dir, generated_root, out_dir = Path(pairs_dir), Path(generated_root), Path(out_dir)

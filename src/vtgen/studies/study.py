@@ -33,7 +33,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from vtgen.io.params import classify_seeds, model_settings, resolve_key, set_keys, validate_params
+from vtgen.io.params import model_settings, resolve_key, set_keys, validate_params
 from vtgen.io.provenance import code_fingerprint
 from vtgen.io.images import atomic_output_dir
 from vtgen.io.tables import read_table
@@ -120,11 +120,12 @@ _JUDGES: dict = {}
 
 
 def gan_test(variant: dict, splits: pd.DataFrame, generated: pd.DataFrame, modality: str) -> dict:
-    """Accuracy of a classifier trained on the real training tiles of ``modality`` (classify settings,
-    first seed) on the real test tiles and on the generated test images ("GAN-test"). The classifier
+    """Accuracy of a classifier trained on the real training tiles of ``modality`` (classify settings, the
+    paired list's first seed) on the real test tiles and on the generated test images ("GAN-test"). The classifier
     is trained once per process for the same tiles and settings."""
     from vtgen.core.classifier import accuracy, train_classifier
     from vtgen.io.images import read_tiles
+    from vtgen.stages.classify import classify_seeds
 
     cfg = variant["classify"]
     real = splits[splits["modality"] == modality]
