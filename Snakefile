@@ -52,7 +52,7 @@ for _stage in stages(config, "main") + stages(config, "studies"):
 
     rule:
         name: _stage.name
-        input: _spec["inputs"]
+        input: _spec["input"]
         output: [directory(p) if p in _spec["directories"] else p for p in _spec["outputs"]]
         params: command=_spec["command"], **_spec["params"]
         threads: _spec["threads"]

@@ -77,6 +77,63 @@ def test_snakemake_rule_expands_other_stages_wildcards_and_keeps_its_own(default
     assert settings["local"] and not train["local"]  # a job of a second: never a cluster job
 
 
+def test_a_modality_s_classifier_waits_for_its_own_generator_only(default_params, tmp_path):
+    classify = by_name("classify")
+    rule = snakemake_rule(classify, default_params)
+    # Snakemake: the input function gives each modality the direction that makes its images
+    visual, tactile = (rule["input"](dict(modality=m)) for m in ("visual", "tactile"))
+    assert "data/generated/t2v" in visual and "data/generated/v2t" not in visual
+    assert "data/generated/v2t" in tactile and "data/generated/t2v" not in tactile
+    # DVC: one foreach job per modality, its generated images named through the mapping
+    written = yaml.safe_load(dvc_yaml(default_params, "main"))["stages"]["classify"]
+    assert written["foreach"] == {"visual": {"producer": "t2v"}, "tactile": {"producer": "v2t"}}
+    assert "data/generated/${item.producer}" in written["do"]["deps"]
+    assert written["do"]["outs"] == [{"data/classify/${key}": {"persist": True}}]
+    # the content records' jobs read the same
+    jobs = {job.name: job for job in pipeline.jobs(default_params)}
+    assert [p for p in jobs["classify@visual"].inputs if p.startswith("data/generated")] == ["data/generated/t2v"]
+    assert [p for p in jobs["classify@tactile"].inputs if p.startswith("data/generated")] == ["data/generated/v2t"]
+    # a stage that derives a placeholder from a wildcard it does not have is refused
+    odd = Stage("odd", "vtgen.stages.pairs", "true", inputs=("data/generated/{producer}",), outputs=("data/odd/{direction}",))
+    with pytest.raises(ValueError, match="producer"):
+        pipeline.dvc_stage(odd, REPO)
+
+
+@pytest.mark.slow
+def test_snakemake_plans_a_modality_s_classifier_without_the_other_direction(tmp_path):
+    project = make_project(tmp_path / "project", tiny_params())
+    dry = subprocess.run(["snakemake", "-n", "data/classify/visual"], cwd=project, env=ENV, capture_output=True, text=True)
+    assert dry.returncode == 0, dry.stdout[-3000:] + dry.stderr[-3000:]
+    planned = re.findall(r"(?:local)?rule (\w+):\n(?:.*\n)*?    output: (\S+)", dry.stdout)
+    outputs = {out for _, out in planned}
+    assert {"models/t2v/all", "data/generated/t2v", "data/classify/visual"} <= outputs
+    assert not {"models/v2t/all", "data/generated/v2t", "data/classify/tactile"} & outputs, sorted(outputs)
+
+
+def test_a_dropped_input_is_no_change_but_a_new_or_changed_one_is(default_params, tmp_path, monkeypatch):
+    from vtgen.io.contents import Hasher, write_record
+
+    monkeypatch.chdir(tmp_path)
+    job = next(j for j in pipeline.jobs(default_params) if j.name == "classify@visual")
+    for path in job.inputs:
+        if not (tmp_path / path).exists():
+            (tmp_path / path).parent.mkdir(parents=True, exist_ok=True)
+            (tmp_path / path).write_text(path)
+    (tmp_path / job.outputs[0]).mkdir(parents=True)
+    (tmp_path / job.outputs[0] / "summary.json").write_text("{}")
+    inputs = pipeline.input_hashes(job, default_params, Hasher())
+    # recorded when the stage still read both directions' images: the dropped one does not rerun it
+    write_record(job.record_dir, job.name, {**inputs, "data/generated/v2t": "0" * 32}, list(job.outputs), Hasher())
+    assert pipeline.job_problem(job, default_params, Hasher()) is None
+    # an input it reads that changed, or one the record lacks, does
+    (tmp_path / "data/generated/t2v").write_text("other images")
+    assert pipeline.job_problem(job, default_params, Hasher()) == "input data/generated/t2v changed since it ran"
+    write_record(job.record_dir, job.name, {k: v for k, v in inputs.items() if k != "data/roi"}, list(job.outputs),
+                 Hasher())
+    (tmp_path / "data/generated/t2v").write_text("data/generated/t2v")
+    assert pipeline.job_problem(job, default_params, Hasher()) == "input data/roi changed since it ran"
+
+
 def test_a_direction_s_settings_change_only_with_its_own_values(default_params, tmp_path):
     params = copy.deepcopy(default_params)
     params["translation"]["class_gan"]["upsample"] = {"v2t": "transpose", "t2v": "resize"}

@@ -13,6 +13,8 @@ Paths may hold wildcards: ``{direction}`` (v2t, t2v), ``{modality}`` (visual, ta
 ``{scope}`` (translation.scope), ``{setting}`` (studies.tradeoff.settings) and ``{name}``
 (studies.experiments.runs). A wildcard in a stage's outputs makes one job per value; one that
 appears only in an input means "every value" (for ``{scope}``: the folder holding them all).
+``{producer}`` in an input follows the job's ``{modality}``: the direction whose output it is (:data:`DERIVED`), so
+a modality's classifier waits for its own generator only.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from pathlib import Path
 
 import yaml
 
-from vtgen.core.domain import DIRECTIONS, MODALITIES
+from vtgen.core.domain import DIRECTIONS, MODALITIES, direction_producing
 from vtgen.io.params import SYNTHETIC_PATH, settings_record
 from vtgen.io.provenance import PACKAGE_ROOT, code_files
 
@@ -114,7 +116,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("classify", "vtgen.stages.classify",
           "vtgen classify --params params.yaml --modality {modality} --pairs data/pairs --generated data/generated "
           "--out data/classify/{modality}",
-          inputs=("data/pairs", "data/roi", "data/generated/{direction}"), outputs=("data/classify/{modality}",),
+          inputs=("data/pairs", "data/roi", "data/generated/{producer}"), outputs=("data/classify/{modality}",),
           params=("classify", "translation.device"), threads="classify.threads",
           doc="AlexNet-style texture classifier of one modality: real only vs real + generated, over seeds."),
     Stage("report", "vtgen.stages.report",
@@ -188,6 +190,22 @@ def wildcard_values(params: dict) -> dict[str, list[str]]:
             "setting": list(studies["tradeoff"]["settings"]), "name": list(studies["experiments"]["runs"])}
 
 
+# placeholders computed from a job's own wildcard: name -> (that wildcard, its value -> this one's)
+DERIVED = {"producer": ("modality", direction_producing)}
+
+
+def with_derived(item: dict[str, str]) -> dict[str, str]:
+    """A job's wildcard values plus the :data:`DERIVED` placeholders they determine."""
+    return {**item, **{name: rule(item[source]) for name, (source, rule) in DERIVED.items() if source in item}}
+
+
+def fill(path: str, item: dict[str, str]) -> str:
+    """``path`` with each ``{name}`` of ``item`` replaced by its value."""
+    for key, value in item.items():
+        path = path.replace("{" + key + "}", value)
+    return path
+
+
 def resolve(text: str, params: dict) -> str:
     """Replace ``${dotted.key}`` with its value in ``params`` (DVC's interpolation, for Snakemake)."""
     def lookup(match: re.Match) -> str:
@@ -224,11 +242,11 @@ DVC_VALUES = {"direction": list(DIRECTIONS), "modality": list(MODALITIES), "scop
 def _dvc_path(path: str, own: list[str], item: dict[str, str]) -> list[str]:
     """One stage path in DVC terms: own wildcards become ``${item...}``; others expand (``{scope}``: its folder)."""
     names = WILDCARD.findall(path)
-    others = [n for n in names if n not in own]
+    others = [n for n in names if n not in own and n not in DERIVED]
     for name in [n for n in others if isinstance(DVC_VALUES[n], str)]:  # values follow params: take their folder
         path = path.replace("/{" + name + "}", "")
         others.remove(name)
-    for name in own:
+    for name in [*own, *(n for n in names if n in DERIVED)]:
         path = path.replace("{" + name + "}", item[name])
     paths = [path]
     for name in others:
@@ -239,7 +257,12 @@ def _dvc_path(path: str, own: list[str], item: dict[str, str]) -> list[str]:
 def dvc_stage(stage: Stage, root: Path) -> dict:
     """``stage`` as a DVC stage definition (``foreach``/``matrix`` for one job per wildcard value)."""
     own = stage.wildcards()
-    if len(own) == 1:  # foreach: ${key} over a mapping of params (settings, runs), ${item} over a list
+    derived = sorted({n for path in stage.inputs for n in WILDCARD.findall(path) if n in DERIVED})
+    if derived and own != [DERIVED[derived[0]][0]]:
+        raise ValueError(f"stage {stage.name}: {{{derived[0]}}} needs the one wildcard {{{DERIVED[derived[0]][0]}}}")
+    if derived:  # foreach over a mapping: ${key} is the value of the job's wildcard, ${item.<name>} what follows from it
+        item = {own[0]: "${key}", **{name: "${item." + name + "}" for name in derived}}
+    elif len(own) == 1:  # foreach: ${key} over a mapping of params (settings, runs), ${item} over a list
         item = {own[0]: "${key}" if own[0] in ("setting", "name") else "${item}"}
     else:
         item = {name: "${item." + name + "}" for name in own}
@@ -265,6 +288,9 @@ def dvc_stage(stage: Stage, root: Path) -> dict:
         body["plots"] = [{path: {"cache": False, "persist": True, **spec}} for path, spec in stage.plots.items()]
     if not own:
         return body
+    if derived:
+        values = {value: {name: with_derived({own[0]: value})[name] for name in derived} for value in DVC_VALUES[own[0]]}
+        return {"foreach": values, "do": body}
     if len(own) == 1:
         return {"foreach": DVC_VALUES[own[0]], "do": body}
     return {"matrix": {name: DVC_VALUES[name] for name in own}, **body}
@@ -320,12 +346,15 @@ def snakemake_rule(stage: Stage, params: dict, root: Path | None = None) -> dict
     for path in stage.inputs:
         paths = [resolve(path, params)]
         for name in WILDCARD.findall(path):
-            if name not in own:
+            if name not in own and name not in DERIVED:
                 paths = [p.replace("{" + name + "}", v) for p in paths for v in values[name]]
         inputs += paths
+    inputs += code_deps(stage, root) + [params_record(stage)]
     outputs = list(stage.outputs) + list(stage.metrics) + list(stage.plots)
     return {
-        "inputs": inputs + code_deps(stage, root) + [params_record(stage)],
+        "inputs": inputs,
+        # what the rule's input directive takes: the paths, or with a DERIVED placeholder a function of the wildcards
+        "input": _inputs_for(inputs) if any(n in DERIVED for p in inputs for n in WILDCARD.findall(p)) else inputs,
         "outputs": outputs,
         "directories": [p for p in stage.outputs if not Path(p).suffix],
         # a per-job record (record_by) holds the values; the rule's own params would hold every direction's
@@ -382,6 +411,14 @@ def outputs(params: dict, pipeline: str = "main") -> list[str]:
     return found
 
 
+def _inputs_for(paths: list[str]):
+    """A Snakemake input function: ``paths`` with the job's wildcards and the DERIVED placeholders filled in."""
+    def inputs(wildcards) -> list[str]:
+        item = with_derived(dict(wildcards.items()))
+        return [fill(path, item) for path in paths]
+    return inputs
+
+
 def _command_for(template: str):
     """The shell command of one job, as a Snakemake params function: the Snakefile's rule loop must not
     read its loop variables when a job runs (they hold the last stage by then)."""
@@ -419,13 +456,10 @@ def jobs(params: dict, pipeline: str = "main") -> list[Job]:
         for combination in itertools.product(*(values[name] for name in own)):
             item = dict(zip(own, combination))
             rule = snakemake_rule(stage, params)
-            def fill(path: str, item=item) -> str:
-                for key, value in item.items():
-                    path = path.replace("{" + key + "}", value)
-                return path
+            full = with_derived(item)
             name = stage.name + ("@" + "-".join(combination) if combination else "")
-            found.append(Job(name, stage, item, tuple(fill(p) for p in rule["inputs"][:-1]),
-                             tuple(fill(p) for p in rule["outputs"])))
+            found.append(Job(name, stage, item, tuple(fill(p, full) for p in rule["inputs"][:-1]),
+                             tuple(fill(p, full) for p in rule["outputs"])))
     made_by = {out: job for job in found for out in job.outputs}
     ordered, done = [], set()
 
@@ -508,7 +542,8 @@ def job_problem(job: Job, params: dict, hasher) -> str | None:
     problem = damage(record, list(job.outputs), hasher)
     if problem is None:
         current = input_hashes(job, params, hasher)
-        changed = sorted(k for k in set(current) | set(record["inputs"]) if current.get(k) != record["inputs"].get(k))
+        # an input the job no longer declares is no change (DVC agrees): what it made came from the inputs it still reads
+        changed = sorted(k for k in current if current[k] != record["inputs"].get(k))
         if changed:
             more = f" (and {len(changed) - 1} more)" if len(changed) > 1 else ""
             problem = f"{CHANGED}{changed[0]} changed since it ran{more}"
