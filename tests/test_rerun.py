@@ -145,8 +145,9 @@ def test_after_restoring_the_parameters_nothing_is_left_to_do(finished):
 
 
 def test_one_direction_s_value_retrains_that_direction_only_in_both_tools(finished, tmp_path):
-    """A per-direction value ({v2t: x, t2v: y}) changed for T2V: Snakemake plans T2V's settings and training only;
-    DVC reruns both settings jobs (it reads whole sections), finds V2T's file unchanged and skips V2T's training."""
+    """A per-direction value ({v2t: x, t2v: y}) changed for T2V: Snakemake plans T2V's settings and training only,
+    and after them only the visual classifier (tactile images come from V2T); DVC reruns both settings jobs (it
+    reads whole sections), finds V2T's file unchanged and skips V2T's training and the tactile classifier."""
     source, params = finished
     project = tmp_path / "project"
     shutil.copytree(source, project, symlinks=True)
@@ -159,13 +160,14 @@ def test_one_direction_s_value_retrains_that_direction_only_in_both_tools(finish
     v2t_model = (project / "models/v2t/all/generator.pt").read_bytes()
 
     jobs, by_params = snakemake_jobs(run(["snakemake", "-n"], project).stdout)
-    assert jobs == {"settings@t2v", "train@t2v-all"} | FROM_GENERATE - {"generate@v2t"}
+    assert jobs == {"settings@t2v", "train@t2v-all"} | FROM_GENERATE - {"generate@v2t", "classify@tactile"}
     assert by_params == {"settings@t2v"}
 
     reproduced = run(["dvc", "repro", "report"], project).stdout
     ran = set(re.findall(r"Running stage '([^']+)'", reproduced))
     assert {"settings@v2t", "settings@t2v", "train@t2v-all"} <= ran, reproduced[-3000:]
-    assert "train@v2t-all" not in ran and "generate@v2t" not in ran, reproduced[-3000:]
+    assert not {"train@v2t-all", "generate@v2t", "classify@tactile"} & ran, reproduced[-3000:]
+    assert "classify@visual" in ran, reproduced[-3000:]
     assert (project / "models/v2t/all/generator.pt").read_bytes() == v2t_model
     assert json.loads((project / "models/t2v/all/train.json").read_text())["conditioning"] == "none"
     assert dvc_changed(project) == set()
