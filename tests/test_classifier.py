@@ -702,6 +702,29 @@ def test_seeds_follow_the_kind_of_pairs(tmp_path, monkeypatch, class_pairs_only,
     assert why in summary["seeds"]["why"]
 
 
+@pytest.mark.slow
+def test_seeds_in_worker_processes_give_the_results_of_one_process(tmp_path, monkeypatch):
+    """classify.threads 2 trains the seeds in two single-threaded processes: the accuracy table (seconds aside), the
+    counts, the policy and the encoder are those of the one-process run; classify.threads 1 is that run."""
+    monkeypatch.chdir(tmp_path)
+    fake_layout(tmp_path)
+    outputs = {}
+    for threads in (1, 2):
+        params = classify_params(seeds=[0, 1, 2], threads=threads)
+        summary = run_classify(params, "tactile", "data/pairs", "data/generated", f"out/{threads}", progress=False)
+        table = pd.read_parquet(tmp_path / f"out/{threads}/accuracy.parquet").drop(columns="seconds")
+        encoder = torch.load(tmp_path / f"out/{threads}/encoder.pt", weights_only=True)["state_dict"]
+        outputs[threads] = (table, summary, encoder)
+    (one, one_summary, one_encoder), (two, two_summary, two_encoder) = outputs[1], outputs[2]
+    pd.testing.assert_frame_equal(one, two)
+    assert len(one) == (len(SETTINGS) + 1) * 3 * 2  # three seeds ran, each with every setting
+    for key in ("counts", "settings", "comparisons", "policy", "gan_test", "real_confusion"):
+        assert one_summary[key] == two_summary[key], key
+    assert one_summary["throughput"]["train_images"] == two_summary["throughput"]["train_images"]
+    assert one_encoder.keys() == two_encoder.keys()
+    assert all(torch.equal(one_encoder[name], two_encoder[name]) for name in one_encoder)
+
+
 def test_paired_difference_counts_groups_not_images():
     from vtgen.core.generated_policy import paired_difference
 

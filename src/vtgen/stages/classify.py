@@ -576,43 +576,108 @@ def _train_settings(sets: dict, settings: list[str], plan: dict, cfg: dict, moda
     """Train one classifier per seed and setting (``real`` first: the confident filter reads its model).
     Returns ``{(setting, seed): {"run", "train_images", "real_images", "generated"}}`` and summary.json's
     ``throughput`` (:func:`throughput`). A candidate whose filter keeps no generated image is the
-    ``real`` run itself (the same images and seed train the same model)."""
+    ``real`` run itself (the same images and seed train the same model).
+
+    On the CPU, ``classify.threads`` > 1 trains the seeds in that many worker processes of one torch thread each
+    (at most one per seed; threads left over go to each worker's torch): every seed's runs are then the runs of
+    one thread, so the results do not depend on how many workers there were."""
     weights_file = cfg["weights"] or None
     if weights_file and not Path(weights_file).is_file():
         raise ValueError(f"{weights_file}: weights file not found (classify.weights; \"\" trains from scratch)")
-    weights = read_state_dict(weights_file) if weights_file else None
-    val = sets["val"] if len(sets["val"][0]) else None
-    runs: dict = {}
-    work = dict.fromkeys(("train", "train_seconds", "norm_seconds", "eval", "eval_seconds"), 0)
+    job = dict(sets=sets, settings=settings, plan=plan, cfg=cfg, modality=modality, num_classes=num_classes,
+               device=device, precision=precision, weights=read_state_dict(weights_file) if weights_file else None)
+    workers = min(cfg["threads"], len(cfg["seeds"])) if device.type == "cpu" else 1
     bar = tqdm(total=len(settings) * len(cfg["seeds"]), desc=f"classify {modality}", unit="run", disable=not progress,
                dynamic_ncols=True)
-    for seed in cfg["seeds"]:
-        subset = torch.from_numpy(low_data_subset(sets["train"][1].numpy(), cfg["low_data_fraction"], seed))
-        sets["counts"]["low_data_real_train"][str(seed)] = len(subset)
-        for setting in settings:
-            real_run = runs.get(("real", seed), {}).get("run")
-            x, y, real_count, repeats = _training_set(setting, seed, sets, subset, plan, real_run and real_run.model,
-                                                      cfg["real_share"])
-            generated = len(x) - real_count * repeats
-            if generated:
-                sets["counts"]["real_repeats"].setdefault(setting, {})[str(seed)] = repeats
-            bar.set_description(f"classify {modality}: {setting}, seed {seed}")
-            if setting not in SETTINGS and not generated:
-                runs[(setting, seed)] = dict(runs[("real", seed)], generated=0, seconds=0.0)
-                bar.update(1)
-                continue
-            extra = {"gan_test": sets["gan"]} if setting == "real" and len(sets["gan"][0]) else None
-            run = _train_one(x, y, sets, cfg, modality, setting, seed, num_classes, device, precision, weights,
-                             weights_file, extra, val, bar)
-            runs[(setting, seed)] = {"run": run, "train_images": real_count + generated, "real_images": real_count,
-                                     "generated": generated}
-            for name, value in (("train", run.train_images), ("train_seconds", run.train_seconds),
-                                ("norm_seconds", run.norm_seconds), ("eval", run.eval_images),
-                                ("eval_seconds", run.eval_seconds)):
-                work[name] += value
-            bar.update(1)
+    if workers == 1:
+        done = [_seed_runs(seed, job, bar) for seed in cfg["seeds"]]
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        bar.set_description(f"classify {modality}: {len(cfg['seeds'])} seeds in {workers} processes")
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
+                                 initargs=(_to_bytes(job), cfg["threads"] // workers)) as pool:
+            futures = [pool.submit(_worker_seed_runs, seed) for seed in cfg["seeds"]]
+            done = []
+            for future in futures:  # in seed order, so the tables and counts are written as one process would
+                done.append(_from_bytes(future.result()))
+                bar.update(len(settings))
     bar.close()
+    runs: dict = {}
+    work = dict.fromkeys(("train", "train_seconds", "norm_seconds", "eval", "eval_seconds"), 0)
+    for seed, (seed_runs, counts, seed_work) in zip(cfg["seeds"], done):
+        runs.update(seed_runs)
+        sets["counts"]["low_data_real_train"][str(seed)] = counts["low_data_real_train"]
+        for setting, repeats in counts["real_repeats"].items():
+            sets["counts"]["real_repeats"].setdefault(setting, {})[str(seed)] = repeats
+        for name, value in seed_work.items():
+            work[name] += value
     return runs, throughput(work)
+
+
+_WORKER_JOB: dict = {}
+
+
+def _to_bytes(value) -> bytes:
+    """``value`` as torch.save bytes: tensors cross the process pipe as plain bytes, never through /dev/shm (a
+    container's may hold 64 MB)."""
+    import io
+
+    buffer = io.BytesIO()
+    torch.save(value, buffer)
+    return buffer.getvalue()
+
+
+def _from_bytes(data: bytes):
+    import io
+
+    return torch.load(io.BytesIO(data), weights_only=False)  # written by this stage's own worker
+
+
+def _start_worker(job: bytes, threads: int) -> None:
+    """A seed worker's start: one torch thread (or the threads left over), and the job's images and settings."""
+    torch.set_num_threads(max(1, threads))
+    _WORKER_JOB.update(_from_bytes(job))
+
+
+def _worker_seed_runs(seed: int) -> bytes:
+    return _to_bytes(_seed_runs(seed, _WORKER_JOB, tqdm(disable=True)))
+
+
+def _seed_runs(seed: int, job: dict, bar) -> tuple[dict, dict, dict]:
+    """Every setting's run of one seed: ``({(setting, seed): entry}, counts, work)``, where ``counts`` holds the
+    seed's low-data size and real repeats per setting and ``work`` the throughput sums of its runs."""
+    sets, cfg, modality = job["sets"], job["cfg"], job["modality"]
+    val = sets["val"] if len(sets["val"][0]) else None
+    runs: dict = {}
+    counts: dict = {"real_repeats": {}}
+    work = dict.fromkeys(("train", "train_seconds", "norm_seconds", "eval", "eval_seconds"), 0)
+    subset = torch.from_numpy(low_data_subset(sets["train"][1].numpy(), cfg["low_data_fraction"], seed))
+    counts["low_data_real_train"] = len(subset)
+    for setting in job["settings"]:
+        real_run = runs.get(("real", seed), {}).get("run")
+        x, y, real_count, repeats = _training_set(setting, seed, sets, subset, job["plan"], real_run and real_run.model,
+                                                  cfg["real_share"])
+        generated = len(x) - real_count * repeats
+        if generated:
+            counts["real_repeats"][setting] = repeats
+        bar.set_description(f"classify {modality}: {setting}, seed {seed}")
+        if setting not in SETTINGS and not generated:
+            runs[(setting, seed)] = dict(runs[("real", seed)], generated=0, seconds=0.0)
+            bar.update(1)
+            continue
+        extra = {"gan_test": sets["gan"]} if setting == "real" and len(sets["gan"][0]) else None
+        run = _train_one(x, y, sets, cfg, modality, setting, seed, job["num_classes"], job["device"], job["precision"],
+                         job["weights"], cfg["weights"] or None, extra, val, bar)
+        runs[(setting, seed)] = {"run": run, "train_images": real_count + generated, "real_images": real_count,
+                                 "generated": generated}
+        for name, value in (("train", run.train_images), ("train_seconds", run.train_seconds),
+                            ("norm_seconds", run.norm_seconds), ("eval", run.eval_images),
+                            ("eval_seconds", run.eval_seconds)):
+            work[name] += value
+        bar.update(1)
+    return runs, counts, work
 
 
 def _train_one(x, y, sets, cfg, modality, setting, seed, num_classes, device, precision, weights, weights_file, extra,
