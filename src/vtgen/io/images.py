@@ -300,8 +300,9 @@ def _stream(executor, tasks: Iterator, window: int, desc: str, bar) -> Iterator:
                     if bar is not None:
                         bar.update()
         finally:
-            for future in pending:
-                future.cancel()
+            # shutdown's own cancel, not Future.cancel: a future cancelled by hand just after its submit can hang
+            # the shutdown of a process pool for ever (CPython gh-94440, fixed in 3.11.3 and 3.12)
+            pool.shutdown(wait=True, cancel_futures=True)
             if bar is not None:
                 bar.close()
 
