@@ -605,7 +605,7 @@ def _train_settings(sets: dict, settings: list[str], plan: dict, cfg: dict, moda
                 bar.update(len(settings))
     bar.close()
     runs: dict = {}
-    work = dict.fromkeys(("train", "train_seconds", "norm_seconds", "eval", "eval_seconds"), 0)
+    work = dict.fromkeys(_WORK_KEYS, 0)
     for seed, (seed_runs, counts, seed_work) in zip(cfg["seeds"], done):
         runs.update(seed_runs)
         sets["counts"]["low_data_real_train"][str(seed)] = counts["low_data_real_train"]
@@ -617,6 +617,8 @@ def _train_settings(sets: dict, settings: list[str], plan: dict, cfg: dict, moda
 
 
 _WORKER_JOB: dict = {}
+# the throughput sums of a job's runs: images and seconds of training, of the normalisation pass and of evaluation
+_WORK_KEYS = ("train", "train_seconds", "norm_seconds", "eval", "eval_seconds")
 
 
 def _to_bytes(value) -> bytes:
@@ -652,7 +654,7 @@ def _seed_runs(seed: int, job: dict, bar) -> tuple[dict, dict, dict]:
     val = sets["val"] if len(sets["val"][0]) else None
     runs: dict = {}
     counts: dict = {"real_repeats": {}}
-    work = dict.fromkeys(("train", "train_seconds", "norm_seconds", "eval", "eval_seconds"), 0)
+    work = dict.fromkeys(_WORK_KEYS, 0)
     subset = torch.from_numpy(low_data_subset(sets["train"][1].numpy(), cfg["low_data_fraction"], seed))
     counts["low_data_real_train"] = len(subset)
     for setting in job["settings"]:
@@ -672,9 +674,8 @@ def _seed_runs(seed: int, job: dict, bar) -> tuple[dict, dict, dict]:
                          job["weights"], cfg["weights"] or None, extra, val, bar)
         runs[(setting, seed)] = {"run": run, "train_images": real_count + generated, "real_images": real_count,
                                  "generated": generated}
-        for name, value in (("train", run.train_images), ("train_seconds", run.train_seconds),
-                            ("norm_seconds", run.norm_seconds), ("eval", run.eval_images),
-                            ("eval_seconds", run.eval_seconds)):
+        for name, value in zip(_WORK_KEYS, (run.train_images, run.train_seconds, run.norm_seconds, run.eval_images,
+                                            run.eval_seconds)):
             work[name] += value
         bar.update(1)
     return runs, counts, work
@@ -746,7 +747,7 @@ def _print_result(summary: dict, modality: str, seeds: int, out_dir: Path) -> No
               f"{test['accuracy']:.3f} {_bracket(test['interval'])} against real only {test['real_accuracy']:.3f} "
               f"{_bracket(test['real_interval'])} (n = {test['images']} test images)")
     print(f"classify {modality}: final test accuracy over {seeds} seed(s) ({summary['seeds']['why']}): {finals}{gan_text} "
-          f"({len(summary['classes'])} classes, {summary['wall_seconds']:.0f} s training; {_speed_text(summary)}) -> {out_dir}")
+          f"({len(summary['classes'])} classes, {summary['wall_seconds']:.0f} s in training runs; {_speed_text(summary)}) -> {out_dir}")
 
 
 def _bracket(interval: list[float] | None) -> str:
