@@ -246,9 +246,7 @@ def _dvc_path(path: str, own: list[str], item: dict[str, str]) -> list[str]:
     for name in [n for n in others if isinstance(DVC_VALUES[n], str)]:  # values follow params: take their folder
         path = path.replace("/{" + name + "}", "")
         others.remove(name)
-    for name in [*own, *(n for n in names if n in DERIVED)]:
-        path = path.replace("{" + name + "}", item[name])
-    paths = [path]
+    paths = [fill(path, {name: item[name] for name in [*own, *(n for n in names if n in DERIVED)]})]
     for name in others:
         paths = [p.replace("{" + name + "}", value) for p in paths for value in DVC_VALUES[name]]
     return paths
