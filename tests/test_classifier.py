@@ -550,12 +550,15 @@ def test_stage_at_an_absurd_learning_rate_is_flagged_or_stopped(tmp_path, monkey
             f"on 18 test images, chance 0.33); check classify.lr (1e+06)") in printed.out
 
 
-def test_stage_stops_when_the_training_loss_becomes_non_finite(tmp_path, monkeypatch):
+@pytest.mark.parametrize("threads", [1, 2])
+def test_stage_stops_when_the_training_loss_becomes_non_finite(tmp_path, monkeypatch, threads):
+    """In one process, or with the seeds in worker processes (whose first error stops the rest)."""
     monkeypatch.chdir(tmp_path)
     fake_layout(tmp_path)
+    params = classify_params(lr=1e12, seeds=[0, 1, 2, 3], threads=threads)
     with pytest.raises(RuntimeError, match=r"^classify tactile: setting 'real', seed 0: the training loss became "
                                            r"non-finite \(nan\) in epoch 1; lower classify.lr \(now 1e\+12\)$"):
-        run_classify(classify_params(lr=1e12), "tactile", "data/pairs", "data/generated", "out/tactile", progress=False)
+        run_classify(params, "tactile", "data/pairs", "data/generated", "out/tactile", progress=False)
     assert not (tmp_path / "out/tactile").exists()
 
 

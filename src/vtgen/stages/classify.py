@@ -600,9 +600,12 @@ def _train_settings(sets: dict, settings: list[str], plan: dict, cfg: dict, moda
                                  initargs=(_to_bytes(job), cfg["threads"] // workers)) as pool:
             futures = [pool.submit(_worker_seed_runs, seed) for seed in cfg["seeds"]]
             done = []
-            for future in futures:  # in seed order, so the tables and counts are written as one process would
-                done.append(_from_bytes(future.result()))
-                bar.update(len(settings))
+            try:
+                for future in futures:  # in seed order, so the tables and counts are written as one process would
+                    done.append(_from_bytes(future.result()))
+                    bar.update(len(settings))
+            finally:  # a seed's error cancels the seeds not started (the shutdown's cancel: vtgen.io.images._stream)
+                pool.shutdown(wait=True, cancel_futures=True)
     bar.close()
     runs: dict = {}
     work = dict.fromkeys(_WORK_KEYS, 0)

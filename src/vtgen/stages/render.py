@@ -96,7 +96,10 @@ def render_dataset(
                 # spawn, not fork: a forked child inherits OpenCV's thread pool in a locked state
                 context = multiprocessing.get_context("spawn")
                 with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker) as pool:
-                    for _ in pool.map(_render_sample, jobs, chunksize=4):
-                        bar.update()
+                    try:
+                        for _ in pool.map(_render_sample, jobs, chunksize=4):
+                            bar.update()
+                    finally:  # after an error, the shutdown's cancel (vtgen.io.images._stream says why)
+                        pool.shutdown(wait=True, cancel_futures=True)
         (tmp / "dataset.json").write_text(json.dumps(info, indent=2) + "\n")
     return {**info, "seconds": round(time.perf_counter() - t0, 3)}
