@@ -175,3 +175,39 @@ def test_a_new_stage_in_the_table_appears_in_both_workflows_with_its_code(tmp_pa
     assert dry.returncode == 0, dry.stdout[-3000:] + dry.stderr[-3000:]
     block = re.search(r"rule count:\n(.*?)\n\n", dry.stdout, flags=re.S)
     assert block and "src/vtgen/stages/pairs.py" in block[1] and "data/roi" in block[1]
+
+
+def test_a_stage_outside_snakemake_gets_the_threads_snakemake_would_give_it(monkeypatch, default_params):
+    """Under DVC (no OMP_NUM_THREADS) a job runs with its declared threads in torch, BLAS and the environment, as
+    under Snakemake, and everything is restored afterwards; under Snakemake its environment decides."""
+    import os
+
+    import torch
+    from threadpoolctl import threadpool_info
+
+    from vtgen.cli import THREAD_VARIABLES, threads_as_snakemake
+    from vtgen.pipeline import jobs
+
+    main_jobs = {job.name: job for job in jobs(default_params, "main")}
+    two_thread_train = {**default_params, "translation": {**default_params["translation"], "threads": 2}}
+    for name in THREAD_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        with threads_as_snakemake(main_jobs["score"], default_params):  # no threads parameter: 1, as Snakemake
+            assert torch.get_num_threads() == 1
+            assert all(os.environ[name] == "1" for name in THREAD_VARIABLES)
+            assert {lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"} <= {1}
+        assert torch.get_num_threads() == 2 and not any(name in os.environ for name in THREAD_VARIABLES)
+        torch.set_num_threads(1)
+        with threads_as_snakemake(main_jobs["train@v2t-all"], two_thread_train):  # translation.threads
+            assert torch.get_num_threads() == 2 and os.environ["OMP_NUM_THREADS"] == "2"
+        assert torch.get_num_threads() == 1
+        monkeypatch.setenv("OMP_NUM_THREADS", "2")  # Snakemake's environment: left as it is
+        with threads_as_snakemake(main_jobs["score"], default_params):
+            assert torch.get_num_threads() == 1 and os.environ["OMP_NUM_THREADS"] == "2"
+        with threads_as_snakemake(None, default_params):  # not a declared job
+            assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)

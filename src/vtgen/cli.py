@@ -18,6 +18,7 @@ import json
 import os
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 from vtgen.core.domain import DIRECTIONS
@@ -303,7 +304,8 @@ def run_stage(args, params) -> None:
         job, inputs = _declared_job(args, params)  # records read params.yaml as written, as DVC does
         kind = data_kind(args, params)
         args.recipe = recipe_choice(params, kind)  # the block applied and why, for the stages that say it
-        args.func(args, with_recipe(params, kind))
+        with threads_as_snakemake(job, params):
+            args.func(args, with_recipe(params, kind))
         out = Path(args.out)
         # not reports/ (declared files only) nor a settings folder (its content alone decides whether training reruns)
         if out.is_dir() and args.stage not in ("report", "studies-report", "settings"):
@@ -314,6 +316,42 @@ def run_stage(args, params) -> None:
             from vtgen.pipeline import record_job
 
             record_job(job, inputs)
+
+
+# what Snakemake sets to a job's threads in the environment of its command
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "GOTO_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                    "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
+
+
+@contextmanager
+def threads_as_snakemake(job, params):
+    """While the block runs outside Snakemake (DVC, or a command typed by hand), give torch, BLAS and child
+    processes the job's declared threads, as Snakemake's environment does: a stage that leaves torch at its
+    default would otherwise use every core under DVC and one under Snakemake, and its floating-point sums
+    (a QR, an SVD) would differ in the last digits. Under Snakemake (OMP_NUM_THREADS set), or for a command
+    that is no declared job (``job`` None), nothing changes. Everything is restored afterwards."""
+    if job is None or "OMP_NUM_THREADS" in os.environ:
+        yield
+        return
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    from vtgen.pipeline import stage_threads
+
+    threads = stage_threads(job.stage, params)
+    saved_env, saved_threads = {name: os.environ.get(name) for name in THREAD_VARIABLES}, torch.get_num_threads()
+    os.environ.update(dict.fromkeys(THREAD_VARIABLES, str(threads)))
+    torch.set_num_threads(threads)
+    try:
+        with threadpool_limits(threads, user_api="blas"):
+            yield
+    finally:
+        torch.set_num_threads(saved_threads)
+        for name, value in saved_env.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
 
 
 def _declared_job(args, params):

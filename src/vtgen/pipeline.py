@@ -334,6 +334,11 @@ def write_dvc_files(params: dict, root: Path, check: bool = False, studies: bool
 
 # ----------------------------------------------------------------------------- Snakemake
 
+def stage_threads(stage: Stage, params: dict) -> int:
+    """The cores a job of ``stage`` declares: its ``threads`` parameter, else 1 (Snakemake's default)."""
+    return int(param_value(params, stage.threads)) if stage.threads else 1
+
+
 def snakemake_rule(stage: Stage, params: dict, root: Path | None = None) -> dict:
     """What the Snakefile's rule loop needs: inputs (wildcards of other stages expanded), outputs,
     params values, threads and the shell command (a function of the job's wildcards)."""
@@ -358,7 +363,7 @@ def snakemake_rule(stage: Stage, params: dict, root: Path | None = None) -> dict
         # a per-job record (record_by) holds the values; the rule's own params would hold every direction's
         "params": {} if stage.record_by else {key.replace(".", "_").replace("${", "").replace("}", ""):
                                                param_value(params, key) for key in stage.params},
-        "threads": param_value(params, stage.threads) if stage.threads else 1,
+        "threads": stage_threads(stage, params),
         "local": stage.local,
         "constraints": {name: "|".join(re.escape(v) for v in values[name]) for name in own},
         "command": _command_for(stage.command),
