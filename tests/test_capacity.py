@@ -74,10 +74,10 @@ def test_easy_class_gets_the_smaller_or_shorter_setting_and_train_json_says_so()
     assert set(record["probe"]) == {"2", "16"}
 
 
-def test_a_rerun_that_trains_afresh_logs_what_the_first_run_logged(tmp_path):
-    """A rerun whose checkpoints match takes the probes from them and, its final checkpoint being finished,
-    trains the chosen width afresh from step 0. Its log (and so its early-stopping decision) must equal the
-    first run's, where the final run continued the probe: the probe validates at the same steps."""
+def test_a_rerun_takes_probes_and_the_finished_run_from_their_checkpoints_and_logs_what_the_first_run_logged(tmp_path):
+    """A rerun whose checkpoints match takes the probes from them and the chosen width's finished run from its
+    checkpoint, training nothing. Its log (and so its early-stopping decision) and its generator equal the first
+    run's, where the final run continued the probe: the probe validates at the same steps."""
     def logged(history):
         return [{k: v for k, v in row.items() if k not in ("images_per_s", "seconds")} for row in history]
 
@@ -88,9 +88,11 @@ def test_a_rerun_that_trains_afresh_logs_what_the_first_run_logged(tmp_path):
                                            tmp_path, progress=False)
     again, _, again_record = train_capacity_auto(easy_and_hard(8, 0), easy_and_hard(3, 1), settings, run, "v2t", "all",
                                                  tmp_path, progress=False)
-    assert record["steps"] == 80 and again.resumed_from == 0 and again_record["steps"] == 80
+    assert record["steps"] == 80 and again.resumed_from == 80 and again_record["steps"] == 80
     assert [r["step"] for r in first.history if "val_by_class" in r] == [20, 40, 60, 80]
     assert logged(again.history) == logged(first.history)
+    assert all(torch.equal(a, b) for a, b in zip(first.generator.state_dict().values(),
+                                                  again.generator.state_dict().values()))
 
 
 def test_the_report_table_gives_each_class_its_floor_and_says_when_one_never_settled():

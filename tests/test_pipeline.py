@@ -134,6 +134,40 @@ def test_a_dropped_input_is_no_change_but_a_new_or_changed_one_is(default_params
     assert pipeline.job_problem(job, default_params, Hasher()) == "input data/roi changed since it ran"
 
 
+def test_times_are_not_content_and_split_off_a_record_and_back(tmp_path, monkeypatch):
+    from vtgen.io.contents import Hasher, write_record
+    from vtgen.io.timing import merge_times, read_with_times, split_times
+
+    monkeypatch.chdir(tmp_path)
+    folder = tmp_path / "out"
+    folder.mkdir()
+    (folder / "summary.json").write_text('{"tiles": 4}')
+    (folder / "timing.json").write_text('{"seconds": 1.5}')
+    first = Hasher().hash("out")
+    write_record("out", "job", {}, ["out"], Hasher())
+    (folder / "timing.json").write_text('{"seconds": 2.5, "finished": "later"}')  # the same data, run again
+    assert Hasher().hash("out") == first and damage_of("out") is None
+    (folder / "summary.json").write_text('{"tiles": 5}')  # the data changed
+    assert Hasher().hash("out") != first and damage_of("out") == "out/summary.json differs from what was written (md5)"
+    assert "timing.json" in Path(REPO / ".dvcignore").read_text().split()  # DVC ignores it too
+
+    record = {"steps": 8, "wall_seconds": 3.0, "capacity": {"mode": "auto", "compute": {"gflop": 2, "seconds": 1.0},
+                                                            "probe": {"16": {"val": 0.5, "seconds": 0.4}}}}
+    data, times = split_times(record, {"wall_seconds", "seconds"})
+    assert data == {"steps": 8, "capacity": {"mode": "auto", "compute": {"gflop": 2}, "probe": {"16": {"val": 0.5}}}}
+    assert times == {"wall_seconds": 3.0, "capacity": {"compute": {"seconds": 1.0}, "probe": {"16": {"seconds": 0.4}}}}
+    assert merge_times(data, times) == record
+    (folder / "train.json").write_text(json.dumps(data))
+    (folder / "timing.json").write_text(json.dumps({**times, "stage": "train", "seconds": 9.0, "peak_rss_mb": 1}))
+    assert read_with_times(folder / "train.json") == record  # the command's own wall time and memory left out
+
+
+def damage_of(folder: str) -> str | None:
+    from vtgen.io.contents import damage, Hasher, read_record
+
+    return damage(read_record(folder), [folder], Hasher())
+
+
 def test_a_direction_s_settings_change_only_with_its_own_values(default_params, tmp_path):
     params = copy.deepcopy(default_params)
     params["translation"]["class_gan"]["upsample"] = {"v2t": "transpose", "t2v": "resize"}

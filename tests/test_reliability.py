@@ -27,6 +27,7 @@ import yaml
 
 from conftest import ENV, REPO, make_project, run, tiny_params
 from vtgen import cli
+from vtgen.io.timing import read_with_times
 from vtgen.io.images import atomic_output_dir, describe_os_error, OutputDirError
 
 pytestmark = pytest.mark.e2e
@@ -220,7 +221,7 @@ def test_training_killed_mid_run_resumes_under_snakemake_to_the_same_weights(tmp
 
     rerun = run(["snakemake", "--cores", "2", "data/generated/v2t"], project)
     assert f"resuming from step {step}" in rerun.stdout + rerun.stderr
-    summary = json.loads((project / "models/v2t/all/train.json").read_text())
+    summary = read_with_times(project / "models/v2t/all/train.json")  # the resumed step: in timing.json
     assert summary["resumed_from_step"] == step and summary["steps"] == reference["steps"]
     assert same_weights(project / "models/v2t/all/generator.pt", tmp_path / "reference/generator.pt")
     assert (project / "data/generated/v2t/generated.parquet").is_file()

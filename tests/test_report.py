@@ -15,8 +15,8 @@ import pytest
 
 from conftest import REPO, tiny_params, write_image
 from vtgen.io.report_pages import PAPER, PAPER_FILE, load_paper, render_page
-from vtgen.io.report_tables import accuracy_table, ssim_tables
-from vtgen.stages.report import run_report
+from vtgen.io.report_tables import accuracy_table, models_table, ssim_tables
+from vtgen.stages.report import model_runs, run_report
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 SCREENSHOT = REPO / "logs" / "test-artifacts" / "report.png"
@@ -117,8 +117,9 @@ def _write_json(path, data) -> None:
     path.write_text(json.dumps(data))
 
 
-def _timing(folder, stage: str, seconds: float) -> None:
-    _write_json(folder / "timing.json", {"stage": stage, "seconds": seconds, "finished": "2024-01-01T00:00:00"})
+def _timing(folder, stage: str, seconds: float, **own) -> None:
+    """timing.json as the stage command writes it: the stage's ``own`` times, then its wall time and date."""
+    _write_json(folder / "timing.json", {**own, "stage": stage, "seconds": seconds, "finished": "2024-01-01T00:00:00"})
 
 
 def fake_run(root, at_chance: bool | None = None, greyscale: bool = False, half_width: float = 0.02) -> dict:
@@ -139,17 +140,16 @@ def fake_run(root, at_chance: bool | None = None, greyscale: bool = False, half_
     for direction, seconds in (("v2t", 4.0), ("t2v", 5.0)):
         model = folders["models"] / direction / "all"
         _write_json(model / "train.json", {"direction": direction, "scope": "all", "preset": "fast",
-                                           "settings": {"size": 32}, "steps": 4, "wall_seconds": seconds,
-                                           "seconds_per_iteration": seconds / 4, "final_val_l1": 0.2,
+                                           "settings": {"size": 32}, "steps": 4, "final_val_l1": 0.2,
                                            "device": "cpu", "precision": "fp32"})
         metrics = model / "dvclive" / "plots" / "metrics"
-        for name, values in (("loss_d", [0.7, 0.6]), ("loss_g_gan", [0.8, 0.9]), ("loss_g_l1", [0.5, 0.4]),
-                             ("images_per_s", [50.0, 60.0])):
+        for name, values in (("loss_d", [0.7, 0.6]), ("loss_g_gan", [0.8, 0.9]), ("loss_g_l1", [0.5, 0.4])):
             (metrics / "train").mkdir(parents=True, exist_ok=True)
             pd.DataFrame({"step": [2, 4], name: values}).to_csv(metrics / "train" / f"{name}.tsv", sep="\t", index=False)
         (metrics / "val").mkdir(parents=True, exist_ok=True)
         pd.DataFrame({"step": [4], "l1": [0.3]}).to_csv(metrics / "val" / "l1.tsv", sep="\t", index=False)
-        _timing(model, "train", seconds)
+        _timing(model, "train", seconds, wall_seconds=seconds - 0.5, seconds_per_iteration=(seconds - 0.5) / 4,
+                resumed_from_step=0)
         generated = folders["generated"] / direction
         _write_json(generated / "summary.json", {"direction": direction, "scopes": {"all": {"train": 2, "test": 2}}})
         write_image(generated / "preview.png", np.full((24, 48, 3), 128, np.uint8))
@@ -589,6 +589,11 @@ def test_timings_and_training_plot_data_come_from_the_input_folders(tmp_path):
     assert timings["jobs"][1] == {"job": "train_v2t_all", "stage": "train", "seconds": 4.0,
                                   "finished": "2024-01-01T00:00:00"}
     assert timings["total_seconds"] == pytest.approx(1.5 + 4 + 5 + 0.5 + 0.5 + 2 + 3 + 3)
+    # a training's own times are in its timing.json, not train.json; the models table reads them from there
+    runs = model_runs(tmp_path / "in" / "models")
+    assert [(r["wall_seconds"], r["seconds_per_iteration"]) for r in runs] == [(3.5, 0.875), (4.5, 1.125)]
+    assert not {"stage", "seconds", "finished"} & set(runs[0])  # the command's own fields stay in the timings table
+    assert models_table(runs)["wall s"].tolist() == [3.5, 4.5]
     training = pd.read_csv(out / "plots" / "training.csv")
     assert list(training.columns) == ["step", "model", "loss_d", "loss_g_gan", "loss_g_l1", "val_l1"]
     assert training["model"].tolist() == ["t2v/all", "t2v/all", "v2t/all", "v2t/all"]

@@ -144,6 +144,25 @@ def test_after_restoring_the_parameters_nothing_is_left_to_do(finished):
     assert dvc_changed(project) == set()
 
 
+def test_a_stage_run_again_that_writes_the_same_data_leaves_the_stages_after_it_alone(finished, tmp_path):
+    """Times are not data: ingest run again (by either tool) writes a new timing.json but the same data, so neither
+    DVC nor Snakemake then finds a stage after it to run again. Before, the seconds in ingest's summary.json made
+    the ROI stage and everything after it run again, training included."""
+    source, _ = finished
+    project = tmp_path / "project"
+    shutil.copytree(source, project, symlinks=True)
+    timing = project / "data/ingest/timing.json"
+    before = timing.read_text()
+    assert "Running stage 'ingest'" in run(["dvc", "repro", "-f", "-s", "ingest"], project).stdout
+    assert timing.read_text() != before  # it ran
+    assert dvc_changed(project) == set()
+    before = timing.read_text()
+    run(["snakemake", "--cores", "1", "--force", "data/ingest"], project)
+    assert timing.read_text() != before  # it ran
+    assert "Nothing to be done" in run(["snakemake", "-n"], project).stdout
+    assert dvc_changed(project) == set()
+
+
 def test_one_direction_s_value_retrains_that_direction_only_in_both_tools(finished, tmp_path):
     """A per-direction value ({v2t: x, t2v: y}) changed for T2V: Snakemake plans T2V's settings and training only,
     and after them only the visual classifier (tactile images come from V2T); DVC reruns both settings jobs (it

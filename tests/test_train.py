@@ -3,6 +3,8 @@ resume and its decision, unusable checkpoints, divergence, data handling."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -173,7 +175,11 @@ def test_run_train_writes_generator_summary_and_loss_log(tmp_path, monkeypatch):
     # the command line applies the recipe before a stage runs (recipe auto: none without a pairs summary)
     summary = run_train(with_recipe(tiny_params()), "v2t", "all", "pairs", "models/v2t/all", "ckpt", progress=False)
     out = tmp_path / "models/v2t/all"
-    assert {p.name for p in out.iterdir()} == {"generator.pt", "train.json", "dvclive"}
+    assert {p.name for p in out.iterdir()} == {"generator.pt", "train.json", "dvclive", "timing.json"}
+    times = json.loads((out / "timing.json").read_text())  # what the run took: there, not in train.json
+    assert set(times) == {"wall_seconds", "seconds_per_iteration", "resumed_from_step"} and times["resumed_from_step"] == 0
+    assert not set(times) & set(json.loads((out / "train.json").read_text()))
+    assert not list((out / "dvclive").rglob("images_per_s*"))
     assert summary["steps"] == 10 and summary["training_pairs"] == 6
     assert summary["preset"] == "fast" and summary["recipe"] == "none"
     logged = pd.read_csv(out / "dvclive/plots/metrics/train/loss_g_l1.tsv", sep="\t")
@@ -378,8 +384,8 @@ def test_the_resume_decision():
     keys = keys_of()
     saved = {"fingerprint": dict(keys), "step": 8}
     assert resume_decision(saved, keys, 12, "last.pt") is None  # iterations raised 8 -> 12: continue at 8
-    assert "finished" in resume_decision(saved, keys, 8, "last.pt")  # never a zero-step "resume"
-    assert "finished" in resume_decision(saved, keys, 4, "last.pt")
+    assert resume_decision(saved, keys, 8, "last.pt") is None  # finished: the checkpoint is the result
+    assert "past the 4 iterations" in resume_decision(saved, keys, 4, "last.pt")
     assert keys_of(dict(SETTINGS, iterations=99)) == keys  # the iteration count is not part of the key
     for changed, key, reason in [(keys_of(dict(SETTINGS, iterations=8, lr=1e-3)), "params", PARAMS_CHANGED),
                                  (keys_of(run=dict(RUN, seed=1)), "params", PARAMS_CHANGED),
@@ -428,12 +434,20 @@ def test_a_checkpoint_is_resumed_only_when_params_data_and_code_all_match(tmp_pa
     assert out.count("\n") == 1 and "the code that defines training changed" in out and "training afresh" in out
 
 
-def test_a_finished_checkpoint_is_never_resumed_into_a_zero_step_run(tmp_path, capsys):
+def test_a_finished_checkpoint_that_matches_is_the_result_and_nothing_is_trained(tmp_path, capsys, monkeypatch):
     first = run_in(tmp_path, 8)
-    again = run_in(tmp_path, 8)
-    assert "(finished); training afresh" in capsys.readouterr().out
-    assert again.resumed_from == 0 and again.steps == 8
-    assert same_weights(weights(first.generator), weights(again.generator))  # trained again, from the same seed
+    fresh = run_in(tmp_path / "elsewhere", 8)  # what training again gives: the same weights (deterministic on the CPU)
+    assert same_weights(weights(first.generator), weights(fresh.generator))
+    capsys.readouterr()
+    with monkeypatch.context() as patch:
+        patch.setattr(TranslatorTraining, "step", lambda *a, **k: pytest.fail("a finished run was trained again"))
+        again = run_in(tmp_path, 8)
+    assert "the finished run in" in capsys.readouterr().out
+    assert again.resumed_from == 8 and again.steps == 8 and again.history == first.history
+    assert same_weights(weights(first.generator), weights(again.generator))
+    shorter = run_in(tmp_path, 4)  # a checkpoint past the steps asked for is not the result: afresh
+    assert "past the 4 iterations the run asks for; training afresh" in capsys.readouterr().out
+    assert shorter.resumed_from == 0 and shorter.steps == 4
 
 
 @pytest.mark.parametrize("damage", ["truncated", "garbage", "shape", "missing"])

@@ -325,7 +325,7 @@ def test_a_change_to_the_model_code_retrains_and_reruns_everything_after_in_both
     rerun = subprocess.run(["snakemake", "--cores", "2"], cwd=project, env=env, capture_output=True, text=True)
     assert rerun.returncode == 0, rerun.stdout[-3000:] + rerun.stderr[-3000:]
     assert "code that defines training changed" in rerun.stdout + rerun.stderr
-    assert json.loads((project / "models/v2t/all/train.json").read_text())["resumed_from_step"] == 0
+    assert json.loads((project / "models/v2t/all/timing.json").read_text())["resumed_from_step"] == 0
     after = weights(project / "models/v2t/all/generator.pt")
     assert any(not torch.equal(before[k], after[k]) for k in before)  # trained afresh, not the old model
 

@@ -8,7 +8,8 @@ atomically. Errors are reported in one line naming the file and the problem; set
 
 Pipeline stages take the project's run lock (:mod:`vtgen.io.runlock`) and record their wall time in
 ``timing.json`` inside their output folder, where the report finds the timings of the very
-outputs it reports.
+outputs it reports. Times live there only: neither DVC (.dvcignore) nor the content records hash that file,
+so a stage that runs again and writes the same data does not make the stages after it run again.
 """
 
 from __future__ import annotations
@@ -298,6 +299,7 @@ def data_kind(args, params) -> dict | None:
 def run_stage(args, params) -> None:
     """Run a pipeline stage under the project's run lock and write its wall time into its output folder."""
     from vtgen.io.runlock import run_lock
+    from vtgen.io.timing import TIMING
 
     started = time.perf_counter()
     with run_lock(f"vtgen {args.stage}"):
@@ -309,9 +311,11 @@ def run_stage(args, params) -> None:
         out = Path(args.out)
         # not reports/ (declared files only) nor a settings folder (its content alone decides whether training reruns)
         if out.is_dir() and args.stage not in ("report", "studies-report", "settings"):
-            record = {"stage": args.stage, "seconds": round(time.perf_counter() - started, 2),
+            timing = out / TIMING  # the stage's own times (a training's seconds per step, say), if it wrote any
+            record = {**(json.loads(timing.read_text()) if timing.is_file() else {}), "stage": args.stage,
+                      "seconds": round(time.perf_counter() - started, 2),
                       "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), **peak_memory()}
-            (out / "timing.json").write_text(json.dumps(record) + "\n")
+            timing.write_text(json.dumps(record) + "\n")
         if job is not None:
             from vtgen.pipeline import record_job
 

@@ -19,8 +19,12 @@ import json
 import os
 from pathlib import Path
 
+from vtgen.io.timing import TIMING
+
 RECORD = ".contents.json"
-NOT_CONTENT = {RECORD, ".snakemake_timestamp"}  # our record and Snakemake's directory marker are not data
+# our record, the run's timings and Snakemake's directory marker are not data (.dvcignore lists the same for DVC), so
+# a stage that reruns and writes the same data leaves the stages after it with nothing to do
+NOT_CONTENT = {RECORD, TIMING, ".snakemake_timestamp"}
 CACHE = Path(".vtgen") / "hashes.json"
 
 

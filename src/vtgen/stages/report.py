@@ -43,6 +43,7 @@ import pandas as pd
 import yaml
 
 from vtgen.core.domain import direction_producing, DIRECTIONS, MODALITIES
+from vtgen.io.timing import read_with_times
 from vtgen.io.provenance import code_version
 from vtgen.io.report_figures import write_figures
 from vtgen.io.report_metrics import headline_metrics, realistic_gan_tests
@@ -83,8 +84,10 @@ class ReportInputs:
 
 
 def model_runs(models_dir: Path) -> list[dict]:
-    """train.json of every model under ``models_dir/<direction>/<scope>/``, in direction then scope order."""
-    runs = [read_json(path) | {"folder": path.parent} for path in models_dir.glob("*/*/train.json")]
+    """train.json of every model under ``models_dir/<direction>/<scope>/``, with the times of its timing.json put back
+    where train.json had them before they moved there (wall seconds, seconds per step, capacity's seconds), in
+    direction then scope order."""
+    runs = [read_with_times(path) | {"folder": path.parent} for path in models_dir.glob("*/*/train.json")]
     if not runs:
         raise FileNotFoundError(errno.ENOENT, "no trained model (<direction>/<scope>/train.json) in", str(models_dir))
     order = list(DIRECTIONS)

@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
+from vtgen.io.timing import write_timing
 from vtgen.io.images import atomic_output_dir, ImageError, labelled_sheet, read_for_roi, read_rgb8, stream_map, write_png
 from vtgen.io.tables import read_table
 from vtgen.core.roi import crop_boxes, image_roi, ImageROI, tactile_region  # noqa: F401 - crop_boxes, tactile_region: re-exported
@@ -189,7 +190,8 @@ def tile_preview(tiles: pd.DataFrame, tiles_dir: Path, per_class: int = 4, side:
 
 def run_roi(manifest_path: str | Path, roi: dict, out_dir: str | Path, workers: int = 2) -> dict:
     """Stage entry: write ``tiles/``, ``tiles.parquet``, ``regions.parquet``, ``summary.json`` and
-    ``preview.png`` into ``out_dir``; return the summary."""
+    ``preview.png`` into ``out_dir`` (its seconds and images per second into ``timing.json``); return the summary
+    with those times."""
     manifest = read_table(manifest_path, MANIFEST_NEEDS, "the ingest stage's manifest")
     started = time.perf_counter()
     skipped: list[dict] = []
@@ -212,14 +214,16 @@ def run_roi(manifest_path: str | Path, roi: dict, out_dir: str | Path, workers: 
             "regions": {modality: group["shape"].value_counts().sort_index().to_dict()
                         for modality, group in cut.groupby("modality", sort=True)},
             "channels": {modality: int(group["channels"].max()) for modality, group in cut.groupby("modality", sort=True)},
-            "seconds": round(seconds, 3),
-            "images_per_second": round(len(manifest) / seconds, 1) if seconds > 0 else None,
             "skipped": skipped,
         }
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        times = {"seconds": round(seconds, 3),
+                 "images_per_second": round(len(manifest) / seconds, 1) if seconds > 0 else None}
+        # the cutting alone, apart from the command's wall time (its "seconds")
+        write_timing(tmp, {"work_seconds": times["seconds"], "images_per_second": times["images_per_second"]})
     print(f"roi: {summary['images']} images -> {summary['tiles']} tiles of {roi['size']} px "
-          f"({summary['images_per_second']} images/s)")
+          f"({times['images_per_second']} images/s)")
     for item in skipped:
         print(f"  warning: no tile from {item['path']}: {item['reason']}")
-    return summary
+    return {**summary, **times}
 

@@ -49,6 +49,7 @@ from vtgen.core.referee import at_side, distinct_images, Referee, train_referee
 from vtgen.core.roi import random_crops
 from vtgen.core.translator import LOSS_NAMES, STATE_KEYS, training_step_flops, TranslatorTraining
 from vtgen.io.checkpoints import input_preparation, save_atomic, save_generator
+from vtgen.io.timing import split_times, write_timing
 from vtgen.io.images import atomic_output_dir, read_for_roi, read_tiles, resize_tiles
 from vtgen.io.limits import check_training_fits
 from vtgen.io.params import model_settings
@@ -66,6 +67,9 @@ GUIDE_SEED_OFFSET = 7919  # class_gan.semantic's classifier seed = translation.s
 REFEREE_SEED_OFFSET = 104729  # class_gan.select_every's referee classifier seed = translation.seed + this
 SELECTION_INPUTS_PER_CLASS = 6  # training inputs of each class select_every translates when there is no validation split
 MIN_VAL_CHECK_STEPS = 22  # steps, when BatchNorm's running statistics (momentum 0.1) are >= 90% from training
+# what a run took, not what it made: timing.json keeps them, train.json the rest (so a rerun that trains nothing new,
+# or trains the same weights again, writes the same train.json)
+RUN_TIMES = {"wall_seconds", "seconds_per_iteration", "resumed_from_step", "seconds", "fixed_large_seconds_estimate"}
 CHECKPOINT_FIELDS = ("fingerprint", "step", "history", "seconds", "baseline", *STATE_KEYS, "sampler_rng", "torch_rng")
 CHANGED = {"params": "the training parameters (preset, seed, precision)", "data": "the training pairs",
            "code": "the code that defines training"}
@@ -564,8 +568,10 @@ def checkpoint_keys(settings: dict, run: dict, direction: str, scope: str, data:
 def resume_decision(saved: dict, keys: dict, iterations: int, path: Path | str) -> str | None:
     """None when checkpoint ``saved`` (at ``path``) can be resumed for a run of ``iterations`` steps, else why not.
 
-    Resumable: all of :func:`checkpoint_keys` match and its step is below ``iterations`` (a finished run is
-    never resumed into zero steps)."""
+    Resumable: all of :func:`checkpoint_keys` match and its step is at most ``iterations``. At ``iterations`` the run
+    is finished, and since training is deterministic (same params, data and code, same weights) its checkpoint is
+    the result that training again would give (to the bit on the CPU): nothing is trained again (after a kill between the last step and the written model, or a rerun of
+    an upstream stage that wrote the same data). One past ``iterations`` (a shorter run asked for) starts afresh."""
     stored = saved.get("fingerprint")
     if not isinstance(stored, dict):
         return f"{path} was written by an older vtgen (no code fingerprint)"
@@ -573,8 +579,8 @@ def resume_decision(saved: dict, keys: dict, iterations: int, path: Path | str) 
     if changed:
         return f"{' and '.join(changed)} changed since {path}" if len(changed) < 3 else \
             f"{', '.join(changed[:2])} and {changed[2]} changed since {path}"
-    if saved["step"] >= iterations:
-        return f"{path} is at step {saved['step']}, the run asks for {iterations} iterations (finished)"
+    if saved["step"] > iterations:
+        return f"{path} is at step {saved['step']}, past the {iterations} iterations the run asks for"
     return None
 
 
@@ -641,7 +647,9 @@ def _start(job: Job) -> tuple[TranslatorTraining, torch.Generator, RunState]:
             _set_aside(path, job.label, f"does not fit these networks, {_first_line(exc)}")
             training, sampler = _fresh(job)
         else:
-            print(f"train {job.label}: resuming from step {saved['step']} ({path})")
+            print(f"train {job.label}: the finished run in {path} has the same params, data and code; its result is "
+                  f"used, nothing is trained" if saved["step"] == job.settings["iterations"] else
+                  f"train {job.label}: resuming from step {saved['step']} ({path})")
             return training, sampler, RunState(saved["step"], saved["history"], saved["seconds"], saved["baseline"],
                                                resumed_from=saved["step"], saved_step=saved["step"],
                                                selected=saved.get("selected"))
@@ -874,7 +882,7 @@ def _live_logger(folder: Path):
 
     def log(row: dict) -> None:
         live.step = row["step"]
-        for name in (*LOSS_NAMES, "images_per_s"):
+        for name in LOSS_NAMES:  # not images_per_s, a time (timing.json has the seconds per step)
             live.log_metric(f"train/{name}", row[name])
         if "val_l1" in row:
             live.log_metric("val/l1", row["val_l1"])
@@ -1156,7 +1164,8 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
               tiles_path: str | Path = "data/roi/tiles.parquet") -> dict:
     """Stage entry: train ``direction`` for one ``scope`` entry and write ``out_dir`` atomically.
 
-    ``out_dir`` receives generator.pt, train.json and dvclive/ (per-step losses). ``tiles_path`` (the roi
+    ``out_dir`` receives generator.pt, train.json, dvclive/ (per-step losses) and timing.json (:data:`RUN_TIMES`:
+    what the run took, kept out of train.json so that the same training writes the same files). ``tiles_path`` (the roi
     stage's table) is read only when ``class_gan.views`` asks for more crops of the training frames. Checkpoints
     live outside it, in ``checkpoint_root/<direction>/<scope>/``, because Snakemake and DVC
     delete a stage's outputs before rerunning it and a resume must survive that.
@@ -1222,7 +1231,9 @@ def run_train(params: dict, direction: str, scope: str, pairs_dir: str | Path, o
                             "targets": len(data.targets), "inputs": len(data.pool_images)}
         if objective == "class_gan":
             summary["selection"] = selection_record(settings, result, validation)
-        (tmp / "train.json").write_text(json.dumps(summary, indent=2) + "\n")
+        record, times = split_times(summary, RUN_TIMES)
+        (tmp / "train.json").write_text(json.dumps(record, indent=2) + "\n")
+        write_timing(tmp, times)
     print(f"train {direction}/{scope}: {result.steps} steps in {result.seconds:.1f} s "
           f"({summary['seconds_per_iteration']:.3f} s/it) -> {out_dir}")
     return summary

@@ -33,6 +33,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from vtgen.io.timing import read_with_times
 from vtgen.io.params import model_settings, resolve_key, set_keys, validate_params
 from vtgen.io.provenance import code_fingerprint
 from vtgen.io.images import atomic_output_dir
@@ -184,7 +185,7 @@ def run_direction(variant: dict, direction: str, pairs_dir: Path, work: Path, la
         summary = run_train(variant, direction, scope, pairs_dir, work / "models" / direction / scope,
                             checkpoint_root=work / "checkpoints", progress=progress) \
             if not (work / "models" / direction / scope / "train.json").is_file() \
-            else json.loads((work / "models" / direction / scope / "train.json").read_text())
+            else read_with_times(work / "models" / direction / scope / "train.json")
         timings["train_seconds"] += summary["wall_seconds"]
         timings["trained"][scope] = {"width": summary["settings"]["ngf"], "steps": summary["steps"],
                                      "capacity": summary.get("capacity", {}).get("mode", "fixed")}
@@ -350,7 +351,7 @@ def run_round_trip(variant: dict, pairs_dir: Path, work: Path, progress: bool = 
         back = translate(back_model, tactile, conditioning=back_meta["conditioning"],
                          labels=back_meta["conditioning"].labels(classes))
         ssim = colour_ssim(back.permute(0, 2, 3, 1).numpy(), originals.permute(0, 2, 3, 1).numpy(), 255.0)
-        info[label] = {"train_seconds": json.loads((out / "train.json").read_text())["wall_seconds"]}
+        info[label] = {"train_seconds": read_with_times(out / "train.json")["wall_seconds"]}
         for cls in sorted(test["class"].unique()):
             mask = (test["class"] == cls).to_numpy()
             rows.append({"direction": f"round trip, T2V on {label}", "class": cls, "metric": "round trip",
