@@ -127,7 +127,9 @@ def test_damaged_outputs_are_named_and_rebuilt_identical_to_the_undamaged_run(dv
                          text, flags=re.M), (path, text[-3000:])
     assert jobs == {"roi", "pairs", "settings", "train", "generate", "score", "classify", "report", "all"}  # settings reads pairs
 
-    run(["snakemake", "--cores", "2"], project)
+    rebuilt = run(["snakemake", "--cores", "2"], project)
+    # training's data is unchanged, so each direction's finished checkpoint is its result: nothing is trained again
+    assert (rebuilt.stdout + rebuilt.stderr).count("its result is used, nothing is trained") == 2, "\n".join(l for l in (rebuilt.stdout + rebuilt.stderr).splitlines() if "train" in l)
     after = outputs_snapshot(project)
     assert after.keys() == before.keys()
     assert deterministic(after) == deterministic(before)

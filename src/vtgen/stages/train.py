@@ -647,9 +647,10 @@ def _start(job: Job) -> tuple[TranslatorTraining, torch.Generator, RunState]:
             _set_aside(path, job.label, f"does not fit these networks, {_first_line(exc)}")
             training, sampler = _fresh(job)
         else:
+            finished = saved["step"] == job.settings["iterations"] or bool(job.stop and saved["history"]
+                                                                           and job.stop(saved["history"]))
             print(f"train {job.label}: the finished run in {path} has the same params, data and code; its result is "
-                  f"used, nothing is trained" if saved["step"] == job.settings["iterations"] else
-                  f"train {job.label}: resuming from step {saved['step']} ({path})")
+                  f"used, nothing is trained" if finished else f"train {job.label}: resuming from step {saved['step']} ({path})")
             return training, sampler, RunState(saved["step"], saved["history"], saved["seconds"], saved["baseline"],
                                                resumed_from=saved["step"], saved_step=saved["step"],
                                                selected=saved.get("selected"))
