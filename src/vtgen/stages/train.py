@@ -568,10 +568,11 @@ def checkpoint_keys(settings: dict, run: dict, direction: str, scope: str, data:
 def resume_decision(saved: dict, keys: dict, iterations: int, path: Path | str) -> str | None:
     """None when checkpoint ``saved`` (at ``path``) can be resumed for a run of ``iterations`` steps, else why not.
 
-    Resumable: all of :func:`checkpoint_keys` match and its step is at most ``iterations``. At ``iterations`` the run
-    is finished, and since training is deterministic (same params, data and code, same weights) its checkpoint is
-    the result that training again would give (to the bit on the CPU): nothing is trained again (after a kill between the last step and the written model, or a rerun of
-    an upstream stage that wrote the same data). One past ``iterations`` (a shorter run asked for) starts afresh."""
+    Resumable: all of :func:`checkpoint_keys` match and its step is at most ``iterations``. At ``iterations`` the
+    run is finished, and since training is deterministic (same params, data and code, same weights; to the bit on
+    the CPU) its checkpoint is the result training again would give: nothing is trained again (after a kill
+    between the last step and the written model, or a rerun of an upstream stage that wrote the same data). Past
+    ``iterations`` (a shorter run asked for) it starts afresh."""
     stored = saved.get("fingerprint")
     if not isinstance(stored, dict):
         return f"{path} was written by an older vtgen (no code fingerprint)"
@@ -650,7 +651,8 @@ def _start(job: Job) -> tuple[TranslatorTraining, torch.Generator, RunState]:
             finished = saved["step"] == job.settings["iterations"] or bool(job.stop and saved["history"]
                                                                            and job.stop(saved["history"]))
             print(f"train {job.label}: the finished run in {path} has the same params, data and code; its result is "
-                  f"used, nothing is trained" if finished else f"train {job.label}: resuming from step {saved['step']} ({path})")
+                  f"used, nothing is trained" if finished else
+                  f"train {job.label}: resuming from step {saved['step']} ({path})")
             return training, sampler, RunState(saved["step"], saved["history"], saved["seconds"], saved["baseline"],
                                                resumed_from=saved["step"], saved_step=saved["step"],
                                                selected=saved.get("selected"))
