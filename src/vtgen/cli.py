@@ -8,8 +8,8 @@ atomically. Errors are reported in one line naming the file and the problem; set
 
 Pipeline stages take the project's run lock (:mod:`vtgen.io.runlock`) and record their wall time in
 ``timing.json`` inside their output folder, where the report finds the timings of the very
-outputs it reports. Times live there only: neither DVC (.dvcignore) nor the content records hash that file,
-so a stage that runs again and writes the same data does not make the stages after it run again.
+outputs it reports. Neither DVC (.dvcignore) nor the content records hash that file, so a stage that runs
+again and writes the same data does not make the stages after it run again (:mod:`vtgen.io.timing`).
 """
 
 from __future__ import annotations

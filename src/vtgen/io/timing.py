@@ -1,9 +1,10 @@
 """Run times, kept apart from the data: each stage's ``timing.json`` in its output folder.
 
 A stage command writes its wall time, date and peak memory there (vtgen.cli), after the stage's own times
-(images per second, seconds per training step, the step a run resumed from). No other output file holds a time,
-and neither DVC (.dvcignore) nor the content records (:mod:`vtgen.io.contents`) hash ``timing.json``: a stage
-that runs again and writes the same data leaves the stages after it with nothing to do.
+(images per second, seconds per training step, the step a run resumed from). Up to generate no other output file
+holds a time (classify and score give the seconds of their parts), and neither DVC (.dvcignore) nor the content
+records (:mod:`vtgen.io.contents`) hash ``timing.json``: a stage that runs again and writes the same data leaves
+the stages after it with nothing to do.
 """
 
 from __future__ import annotations
