@@ -57,7 +57,7 @@ from vtgen.core.domain import MODALITIES
 from vtgen.core.grouping import (
     group_names, merge_exact_duplicates, merge_near_duplicates, THUMB, UnionFind, union_equal,
 )
-from vtgen.io.timing import split_times, write_timing
+from vtgen.io.timing import write_timing
 from vtgen.io.dataset_listing import read_layout, read_user_manifest
 from vtgen.io.decoding import inspect_candidate
 from vtgen.io.images import atomic_output_dir, check_output_dir, display_path, is_utf8_path, stream_map
@@ -311,10 +311,10 @@ def run_ingest(root: str | Path, dataset: str | dict, out_dir: str | Path, worke
         manifest.to_parquet(tmp / "manifest.parquet", index=False)
         quarantine.to_parquet(tmp / "quarantine.parquet", index=False)
         quarantine.to_csv(tmp / "quarantine.csv", index=False)
-        data, times = split_times(summary, {"seconds", "images_per_second"})
-        (tmp / "summary.json").write_text(json.dumps(data, indent=2) + "\n")
+        times = ("seconds", "images_per_second")
+        (tmp / "summary.json").write_text(json.dumps({k: v for k, v in summary.items() if k not in times}, indent=2) + "\n")
         # the reading and checking alone, apart from the command's wall time (its "seconds")
-        write_timing(tmp, {"work_seconds": times["seconds"], "images_per_second": times["images_per_second"]})
+        write_timing(tmp, {"work_seconds": summary["seconds"], "images_per_second": summary["images_per_second"]})
     dup = summary["duplicates"]
     print(
         f"ingest: {summary['images_decoded']} image files in, {summary['kept']} kept "
