@@ -22,7 +22,9 @@ here on the real training images of the run with the classify stage's settings):
 * memorisation rate of generated vs real test images (goal 4: within the interval of real's);
 * edge outliers: the share of images with a border band or corner wash, i.e. whose largest gap between an edge
   strip's mean colour and the interior's (:func:`edge_gap`) is above the 99th percentile of the real training
-  targets' (about 0.01 for real images; a picture's defect that the distribution metrics average away).
+  targets' (about 0.01 for real images; a picture's defect that the distribution metrics average away);
+* spectrum distance: the score stage's power-spectrum distance (:func:`vtgen.core.distribution.spectrum_distance`,
+  decades of power) of the set against the real training targets; smooth outputs that lack a sensor's grain show here.
 
     python benchmarks/unaligned_ablation.py --run /tmp/xu --direction v2t --seeds 0 1 \\
         --variant pix2pix:objective=pix2pix --variant class_gan:objective=class_gan
@@ -50,7 +52,8 @@ import yaml
 
 from vtgen.core.classifier import predict, train_classifier, wilson_interval
 from vtgen.core.distribution import (classifier_encoder, diversity_ratio, fid, flat_colour_set, grey_pixels,
-                                     image_features, kid, mean_image_set, median_interval, memorisation, prdc_scores)
+                                     image_features, kid, mean_image_set, median_interval, memorisation, prdc_scores,
+                                     spectrum_distance)
 from vtgen.core.domain import DIRECTIONS
 from vtgen.core.referee import at_side as resized  # area-resized uint8 tiles at the classifier's side
 from vtgen.io.checkpoints import load_translator
@@ -198,6 +201,7 @@ def goal_numbers(generated: torch.Tensor, classes: np.ndarray, context: dict) ->
                                    == np.array([index[c] for c in classes])).mean()),
         "memorisation": memorisation(features, real_train, real_test).rate,
         "edge_outliers": float((edge_gap(generated) > context["edge_threshold"]).mean()),
+        "spectrum": spectrum_distance(context["train_targets"], generated),
     }
     return out
 
@@ -255,7 +259,7 @@ def row(name: str, seed, r: dict) -> str:
     return (f"| {name} | {seed} | {r['n']} | {ci(r['diversity_pixels'])} | {ci(r['diversity_features'])} | "
             f"{r['prdc']['recall']:.2f} / {r['prdc']['coverage']:.2f} | {r['fid']:.1f} | "
             f"{k[0]:.4f} ± {1.96 * k[1]:.4f} | {c[0]:.4f} [{c[1]:.4f}, {c[2]:.4f}] | {r['gan_test']:.3f} [{low:.3f}, {high:.3f}] | {r['gan_test_blurred']:.3f} | "
-            f"{r['memorisation']:.3f} | {r['edge_outliers']:.3f} | {r.get('seconds', 0):.0f} |")
+            f"{r['memorisation']:.3f} | {r['edge_outliers']:.3f} | {r['spectrum']:.3f} | {r.get('seconds', 0):.0f} |")
 
 
 def main() -> None:
@@ -291,7 +295,7 @@ def main() -> None:
           f"input {in_acc:.3f} (n = {in_n}); GAN-test goal >= {0.8 * min(acc, in_acc):.3f}", flush=True)
     header = ("| variant | seed | n | diversity pixels [95%] | diversity features [95%] | recall / coverage | FID | "
               "KID ± 95% | class-wise KID [95%] | GAN-test [95%] | GAN-test, blurred | memorisation | edge outliers | "
-              "train s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+              "spectrum distance | train s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [row(name, "-", r) for name, r in context["references"].items()]
     if args.model:
         generator, meta = load_translator(args.model)
