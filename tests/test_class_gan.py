@@ -340,9 +340,10 @@ def test_r1_penalty_on_a_linear_discriminator():
     assert float(r1_penalty(logits, real)) == pytest.approx(0.5 * 9 * 48)
 
 
-@pytest.mark.parametrize("key, v2t, t2v", [("r1", 240.0, 1.0), ("upsample", "transpose", "resize")])
+@pytest.mark.parametrize("key, v2t, t2v", [("r1", 240.0, 1.0), ("upsample", "transpose", "resize"),
+                                         ("statistics", 1.0, 0.0)])
 def test_a_key_may_be_given_per_direction(default_params, key, v2t, t2v):
-    """``class_gan.r1`` and ``upsample`` are one value or one per direction; a per-direction block must name both
+    """``class_gan.r1``, ``upsample`` and ``statistics`` are one value or one per direction; a per-direction block must name both
     directions, and each direction trains with its own value."""
     import copy
 
