@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from vtgen.core.augment import augment_policy, colour, cutout, diff_augment, translation
 from vtgen.core.models import ProjectionDiscriminator
 from vtgen.core.classifier import make_classifier, predict
-from vtgen.core.translator import (mode_seeking_loss, nearest_real_loss, other_classes, r1_penalty, recognition_loss, statistics_loss,
+from vtgen.core.translator import (fixed_pattern_loss, fixed_pattern_share, mode_seeking_loss, nearest_real_loss, other_classes, r1_penalty, recognition_loss, statistics_loss,
                                    TranslatorTraining)
 from vtgen.stages.train import _draw, build_guide, objective_settings, PairData, resolve_objective
 from vtgen.io.params import set_keys, with_recipe
@@ -341,7 +341,7 @@ def test_r1_penalty_on_a_linear_discriminator():
 
 
 @pytest.mark.parametrize("key, v2t, t2v", [("r1", 240.0, 1.0), ("upsample", "transpose", "resize"),
-                                         ("statistics", 1.0, 0.0)])
+                                         ("statistics", 1.0, 0.0), ("fixed_pattern", 10.0, 2.0)])
 def test_a_key_may_be_given_per_direction(default_params, key, v2t, t2v):
     """``class_gan.r1``, ``upsample`` and ``statistics`` are one value or one per direction; a per-direction block must name both
     directions, and each direction trains with its own value."""
@@ -896,6 +896,58 @@ def test_mismatch_weight_0_is_the_step_without_it():
     on = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, mismatch=1.0)), "cpu", num_classes=2)
     on.step(*batch())
     assert any(not torch.equal(a, b) for a, b in zip(weights(on.discriminator), weights(off.discriminator)))
+
+
+def dots(places: list[tuple[int, int]], size: int = 16) -> torch.Tensor:
+    """One grey image per (row, column): flat 0 with a single bright pixel there (N x 3 x size x size)."""
+    images = torch.zeros(len(places), 3, size, size)
+    for i, (r, c) in enumerate(places):
+        images[i, :, r, c] = 1.0
+    return images
+
+
+def test_fixed_pattern_share_is_one_over_n_for_dots_at_separate_places_and_one_for_a_shared_dot():
+    moving = dots([(3, 3), (3, 10), (10, 3), (10, 10)])  # 3 x 3 neighbourhoods do not overlap
+    fixed = dots([(6, 6)] * 4)
+    assert float(fixed_pattern_share(moving)) == pytest.approx(1 / 4, rel=1e-5)
+    assert float(fixed_pattern_share(fixed)) == pytest.approx(1.0, rel=1e-5)
+    # the amount of detail is free: three times the contrast, the same share and loss
+    assert float(fixed_pattern_share(3 * fixed)) == pytest.approx(1.0, rel=1e-5)
+    assert float(fixed_pattern_loss(fixed, moving)) == pytest.approx(3 / 4, rel=1e-5)
+    assert float(fixed_pattern_loss(3 * fixed, moving)) == pytest.approx(3 / 4, rel=1e-5)
+    # no cost where the outputs' detail is no more fixed than the real batch's
+    assert float(fixed_pattern_loss(moving, fixed)) == 0.0
+    assert float(fixed_pattern_loss(fixed, fixed)) == 0.0
+    # a smooth gradient has no fine detail away from the edges, and a flat batch none at all: no NaN
+    assert float(fixed_pattern_loss(torch.zeros(4, 3, 16, 16), moving)) == 0.0
+
+
+def test_fixed_pattern_gradient_moves_a_shared_dot_not_the_dots_that_differ():
+    """The gradient of the loss is largest at the place of the dot every output has."""
+    outputs = (dots([(6, 6), (6, 6), (3, 12), (12, 3)]) + 0.0).requires_grad_(True)
+    fixed_pattern_loss(outputs, dots([(3, 3), (3, 10), (10, 3), (10, 10)])).backward()
+    grad = outputs.grad.abs().sum(dim=(0, 1))
+    assert int(grad.argmax()) == 6 * 16 + 6
+    assert float(grad[3, 12]) < float(grad[6, 6])
+    with pytest.raises(ValueError, match="2 rows"):
+        fixed_pattern_loss(outputs[:1], outputs[:1])
+
+
+def test_fixed_pattern_weight_0_is_the_step_without_it():
+    torch.manual_seed(0)
+    plain = TranslatorTraining(dict(SETTINGS, **CLASS_GAN), "cpu", num_classes=2)
+    plain.step(*batch())
+    torch.manual_seed(0)
+    off = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, fixed_pattern=0.0)), "cpu", num_classes=2)
+    off.step(*batch())
+    for a, b in zip(weights(plain.generator), weights(off.generator)):
+        assert torch.equal(a, b)
+    torch.manual_seed(0)
+    on = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, fixed_pattern=10.0)), "cpu", num_classes=2)
+    on.step(*batch())
+    assert any(not torch.equal(a, b) for a, b in zip(weights(on.generator), weights(off.generator)))
+    assert "fixed_pattern" not in objective_settings(dict(SETTINGS), {"class_gan": {"r1": 0.1, "fixed_pattern": 0.0}},
+                                                      "class_gan", "v2t")
 
 
 def test_with_mismatch_the_discriminator_learns_which_class_a_real_image_belongs_to():

@@ -32,6 +32,7 @@ STATE_KEYS = ("generator", "discriminator", "opt_g", "opt_d")
 PRECISIONS = ("fp32", "bf16")
 OBJECTIVES = ("pix2pix", "class_gan")
 MODE_SEEKING_EPS = 1e-5  # floor of the real gap in the mode-seeking ratio
+FIXED_PATTERN_EPS = 1e-8  # floor of the fine-detail energy in the fixed-pattern share
 NCE_LEVELS = (0, 1, 2)  # generator encoder levels PatchNCE compares (at 64 px: 32, 16 and 8 px maps)
 
 
@@ -72,7 +73,7 @@ class TranslatorTraining:
     ``input_channels`` is the generator's input: the 3 image channels plus those of a
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
-    ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``mode_seeking_per_pair``, ``pack``, ``statistics``, ``class_guidance``, ``skips``,
+    ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``mode_seeking_per_pair``, ``pack``, ``statistics``, ``fixed_pattern``, ``class_guidance``, ``skips``,
     ``latent``, ``upsample``, ``padding``, ``semantic``, ``mismatch``, ``nce``, ``texture``, ``contextual`` (see :meth:`class_step`), ``d_lr_ratio`` (D's learning rate over
     G's), ``ema`` (:meth:`update_average`: the generator a run yields is the average of its weights), ``lr_decay``
     (:meth:`schedule_learning_rate`) and ``generator`` (:func:`vtgen.core.models.build_generator`: unet, the default, or resnet), and needs ``num_classes``; ``semantic`` > 0 needs ``guide``, a classifier of the target modality over the
@@ -236,6 +237,9 @@ class TranslatorTraining:
         With ``statistics`` w > 0, G += w·:func:`statistics_loss` (G(x), y): colour, contrast and power spectrum
         of each output against those of the real image of its class in its row (summary statistics only, so
         their pull towards the class's typical values cannot copy or average the images themselves).
+        With ``fixed_pattern`` w > 0, G += w·:func:`fixed_pattern_loss` (G(x), y): the share of the outputs' fine detail
+        that sits at the same place in every output of the batch may not exceed the real images' share, so that
+        detail (the grain ``statistics`` asks for) cannot come as a fixed lattice of dots.
         With ``texture`` w > 0, G += w·:func:`vtgen.core.texture.texture_loss` (G(x), y): the feature covariances (centred
         Gram matrices) of a fixed random filter bank (texture statistics, Gatys et al. 2015; random filters,
         Ustyuzhaninov et al. 2017) of each output against those of the real image of its class in its row:
@@ -334,6 +338,9 @@ class TranslatorTraining:
         statistics, texture, contextual = (cfg.get(k, 0.0) for k in ("statistics", "texture", "contextual"))
         if statistics:
             loss_g = loss_g + statistics * statistics_loss(fake.float(), y)
+        fixed_pattern = cfg.get("fixed_pattern", 0.0)
+        if fixed_pattern:
+            loss_g = loss_g + fixed_pattern * fixed_pattern_loss(fake.float(), y)
         if texture:
             loss_g = loss_g + texture * texture_loss(fake, y, self.texture_bank)
         if contextual:
@@ -453,6 +460,29 @@ def statistics_loss(outputs: torch.Tensor, targets: torch.Tensor) -> torch.Tenso
     spread = (outputs.std(dim=(2, 3)) - targets.std(dim=(2, 3))).abs().mean()
     spectrum = (rgb_log_radial_profiles(outputs) - rgb_log_radial_profiles(targets)).abs().mean()
     return mean + spread + spectrum
+
+
+def fine_detail(images: torch.Tensor) -> torch.Tensor:
+    """Each pixel minus the mean of its 3 x 3 neighbourhood (edges replicated): the high-pass part of ``images``."""
+    return images - F.avg_pool2d(F.pad(images, (1, 1, 1, 1), mode="replicate"), 3, stride=1)
+
+
+def fixed_pattern_share(images: torch.Tensor) -> torch.Tensor:
+    """s = Σₚ m(p)² / (Σₚ mean_b h_b(p)² + ε): the share of the fine-detail energy of ``images`` (N x C x H x W,
+    h = :func:`fine_detail`) that the batch mean m = mean_b h_b keeps, i.e. that sits at the same place and with
+    the same sign in every image. Detail at independent places gives about 1/N; a pattern common to all, 1."""
+    detail = fine_detail(images)
+    return detail.mean(dim=0).pow(2).sum() / (detail.pow(2).mean(dim=0).sum() + FIXED_PATTERN_EPS)
+
+
+def fixed_pattern_loss(outputs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """max(0, s(outputs) − s(targets)) with s = :func:`fixed_pattern_share`: fine detail at fixed places (the dot
+    lattices of transposed convolutions, Odena et al. 2016) costs what it adds beyond the real batch's own,
+    while the amount of detail is free (s does not change when all detail is scaled). ``targets`` is data
+    (detached); both batches have N >= 2 rows."""
+    if outputs.shape[0] < 2:
+        raise ValueError(f"a fixed pattern is one shared by the images of a batch: it needs >= 2 rows, got {outputs.shape[0]}")
+    return torch.relu(fixed_pattern_share(outputs) - fixed_pattern_share(targets.detach().float()))
 
 
 def mode_seeking_loss(outputs: torch.Tensor, targets: torch.Tensor, pool: int = 1, per_pair: bool = False) -> torch.Tensor:
