@@ -28,6 +28,9 @@ here on the real training images of the run with the classify stage's settings):
 * fixed spikes: interior pixel positions (2 px in from the border) where the mean over the set of |grey − its 3 x 3
   median| is above 3 x the real training targets' largest (:func:`spike_map`): dots drawn at the same place in every
   output (a lattice of one-pixel spikes), which no real image has and the distribution metrics barely see.
+* fixed share: the share of the set's fine-detail energy (each pixel minus its 3 x 3 mean) that the set's mean keeps
+  (:func:`vtgen.core.translator.fixed_pattern_share`): about 1/n for detail at independent places, 1 for a pattern
+  every image has; compare with the real held-out row, whose n is close.
 
     python benchmarks/unaligned_ablation.py --run /tmp/xu --direction v2t --seeds 0 1 \\
         --variant pix2pix:objective=pix2pix --variant class_gan:objective=class_gan
@@ -59,6 +62,7 @@ from vtgen.core.distribution import (classifier_encoder, diversity_ratio, fid, f
                                      spectrum_distance)
 from vtgen.core.domain import DIRECTIONS
 from vtgen.core.referee import at_side as resized  # area-resized uint8 tiles at the classifier's side
+from vtgen.core.translator import fixed_pattern_share
 from vtgen.io.checkpoints import load_translator
 from vtgen.io.images import labelled_sheet, read_tiles, write_png
 from vtgen.io.params import model_settings, validate_params, with_recipe
@@ -216,6 +220,7 @@ def goal_numbers(generated: torch.Tensor, classes: np.ndarray, context: dict) ->
         "edge_outliers": float((edge_gap(generated) > context["edge_threshold"]).mean()),
         "spectrum": spectrum_distance(context["train_targets"], generated),
         "fixed_spikes": int((spike_map(generated) > context["spike_threshold"]).sum()),
+        "fixed_share": float(fixed_pattern_share(generated.float())),
     }
     return out
 
@@ -274,7 +279,7 @@ def row(name: str, seed, r: dict) -> str:
     return (f"| {name} | {seed} | {r['n']} | {ci(r['diversity_pixels'])} | {ci(r['diversity_features'])} | "
             f"{r['prdc']['recall']:.2f} / {r['prdc']['coverage']:.2f} | {r['fid']:.1f} | "
             f"{k[0]:.4f} ± {1.96 * k[1]:.4f} | {c[0]:.4f} [{c[1]:.4f}, {c[2]:.4f}] | {r['gan_test']:.3f} [{low:.3f}, {high:.3f}] | {r['gan_test_blurred']:.3f} | "
-            f"{r['memorisation']:.3f} | {r['edge_outliers']:.3f} | {r['spectrum']:.3f} | {r['fixed_spikes']} | {r.get('seconds', 0):.0f} |")
+            f"{r['memorisation']:.3f} | {r['edge_outliers']:.3f} | {r['spectrum']:.3f} | {r['fixed_spikes']} | {r['fixed_share']:.3f} | {r.get('seconds', 0):.0f} |")
 
 
 def main() -> None:
@@ -310,7 +315,7 @@ def main() -> None:
           f"input {in_acc:.3f} (n = {in_n}); GAN-test goal >= {0.8 * min(acc, in_acc):.3f}", flush=True)
     header = ("| variant | seed | n | diversity pixels [95%] | diversity features [95%] | recall / coverage | FID | "
               "KID ± 95% | class-wise KID [95%] | GAN-test [95%] | GAN-test, blurred | memorisation | edge outliers | "
-              "spectrum distance | fixed spikes | train s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+              "spectrum distance | fixed spikes | fixed share | train s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [row(name, "-", r) for name, r in context["references"].items()]
     if args.model:
         generator, meta = load_translator(args.model)
