@@ -29,8 +29,10 @@ here on the real training images of the run with the classify stage's settings):
   median| is above 3 x the real training targets' largest (:func:`spike_map`): dots drawn at the same place in every
   output (a lattice of one-pixel spikes), which no real image has and the distribution metrics barely see.
 * fixed share: the share of the set's fine-detail energy (each pixel minus its 3 x 3 mean) that the set's mean keeps
-  (:func:`vtgen.core.translator.fixed_pattern_share`): about 1/n for detail at independent places, 1 for a pattern
-  every image has; compare with the real held-out row, whose n is close.
+  (:func:`fixed_share`): about 1/n for detail at independent places, 1 for a pattern every image has with one sign.
+* concentration: :func:`vtgen.core.translator.detail_concentration` over the set (what ``class_gan.fixed_pattern``
+  reads per batch): how unevenly over pixel positions the set keeps its fine detail, whatever its sign. Compare
+  both with the real held-out row, whose n is close.
 
     python benchmarks/unaligned_ablation.py --run /tmp/xu --direction v2t --seeds 0 1 \\
         --variant pix2pix:objective=pix2pix --variant class_gan:objective=class_gan
@@ -62,7 +64,7 @@ from vtgen.core.distribution import (classifier_encoder, diversity_ratio, fid, f
                                      spectrum_distance)
 from vtgen.core.domain import DIRECTIONS
 from vtgen.core.referee import at_side as resized  # area-resized uint8 tiles at the classifier's side
-from vtgen.core.translator import fixed_pattern_share
+from vtgen.core.translator import detail_concentration, fine_detail
 from vtgen.io.checkpoints import load_translator
 from vtgen.io.images import labelled_sheet, read_tiles, write_png
 from vtgen.io.params import model_settings, validate_params, with_recipe
@@ -196,6 +198,13 @@ def spike_map(images: torch.Tensor, border: int = 2) -> torch.Tensor:
     return residual[border:-border, border:-border]
 
 
+def fixed_share(images: torch.Tensor) -> float:
+    """Σₚ m(p)² / Σₚ mean_n h_n(p)², h = :func:`vtgen.core.translator.fine_detail` of ``images`` (N x C x H x W) and m its
+    mean over the N images: the share of the fine-detail energy at the same place with the same sign in every image."""
+    detail = fine_detail(images.float())
+    return float(detail.mean(dim=0).pow(2).sum() / detail.pow(2).mean(dim=0).sum().clamp_min(1e-12))
+
+
 def goal_numbers(generated: torch.Tensor, classes: np.ndarray, context: dict) -> dict:
     encoder, side = context["encoder"], context["side"]
     features = image_features(encoder, resized(generated, side))
@@ -220,7 +229,8 @@ def goal_numbers(generated: torch.Tensor, classes: np.ndarray, context: dict) ->
         "edge_outliers": float((edge_gap(generated) > context["edge_threshold"]).mean()),
         "spectrum": spectrum_distance(context["train_targets"], generated),
         "fixed_spikes": int((spike_map(generated) > context["spike_threshold"]).sum()),
-        "fixed_share": float(fixed_pattern_share(generated.float())),
+        "fixed_share": fixed_share(generated),
+        "concentration": float(detail_concentration(generated.float())),
     }
     return out
 
@@ -279,7 +289,7 @@ def row(name: str, seed, r: dict) -> str:
     return (f"| {name} | {seed} | {r['n']} | {ci(r['diversity_pixels'])} | {ci(r['diversity_features'])} | "
             f"{r['prdc']['recall']:.2f} / {r['prdc']['coverage']:.2f} | {r['fid']:.1f} | "
             f"{k[0]:.4f} ± {1.96 * k[1]:.4f} | {c[0]:.4f} [{c[1]:.4f}, {c[2]:.4f}] | {r['gan_test']:.3f} [{low:.3f}, {high:.3f}] | {r['gan_test_blurred']:.3f} | "
-            f"{r['memorisation']:.3f} | {r['edge_outliers']:.3f} | {r['spectrum']:.3f} | {r['fixed_spikes']} | {r['fixed_share']:.3f} | {r.get('seconds', 0):.0f} |")
+            f"{r['memorisation']:.3f} | {r['edge_outliers']:.3f} | {r['spectrum']:.3f} | {r['fixed_spikes']} | {r['fixed_share']:.3f} | {r['concentration']:.2f} | {r.get('seconds', 0):.0f} |")
 
 
 def main() -> None:
@@ -315,7 +325,7 @@ def main() -> None:
           f"input {in_acc:.3f} (n = {in_n}); GAN-test goal >= {0.8 * min(acc, in_acc):.3f}", flush=True)
     header = ("| variant | seed | n | diversity pixels [95%] | diversity features [95%] | recall / coverage | FID | "
               "KID ± 95% | class-wise KID [95%] | GAN-test [95%] | GAN-test, blurred | memorisation | edge outliers | "
-              "spectrum distance | fixed spikes | fixed share | train s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+              "spectrum distance | fixed spikes | fixed share | concentration | train s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [row(name, "-", r) for name, r in context["references"].items()]
     if args.model:
         generator, meta = load_translator(args.model)

@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from vtgen.core.augment import augment_policy, colour, cutout, diff_augment, translation
 from vtgen.core.models import ProjectionDiscriminator
 from vtgen.core.classifier import make_classifier, predict
-from vtgen.core.translator import (fixed_pattern_loss, fixed_pattern_share, mode_seeking_loss, nearest_real_loss, other_classes, r1_penalty, recognition_loss, statistics_loss,
+from vtgen.core.translator import (detail_concentration, fixed_pattern_loss, mode_seeking_loss, nearest_real_loss, other_classes, r1_penalty, recognition_loss, statistics_loss,
                                    TranslatorTraining)
 from vtgen.stages.train import _draw, build_guide, objective_settings, PairData, resolve_objective
 from vtgen.io.params import set_keys, with_recipe
@@ -906,31 +906,33 @@ def dots(places: list[tuple[int, int]], size: int = 16) -> torch.Tensor:
     return images
 
 
-def test_fixed_pattern_share_is_one_over_n_for_dots_at_separate_places_and_one_for_a_shared_dot():
+def test_detail_concentration_is_higher_for_a_dot_at_one_place_whatever_its_sign():
     moving = dots([(3, 3), (3, 10), (10, 3), (10, 10)])  # 3 x 3 neighbourhoods do not overlap
     fixed = dots([(6, 6)] * 4)
-    assert float(fixed_pattern_share(moving)) == pytest.approx(1 / 4, rel=1e-5)
-    assert float(fixed_pattern_share(fixed)) == pytest.approx(1.0, rel=1e-5)
-    # the amount of detail is free: three times the contrast, the same share and loss
-    assert float(fixed_pattern_share(3 * fixed)) == pytest.approx(1.0, rel=1e-5)
-    assert float(fixed_pattern_loss(fixed, moving)) == pytest.approx(3 / 4, rel=1e-5)
-    assert float(fixed_pattern_loss(3 * fixed, moving)) == pytest.approx(3 / 4, rel=1e-5)
-    # no cost where the outputs' detail is no more fixed than the real batch's
+    flipping = fixed * torch.tensor([1.0, -1.0, 1.0, -1.0])[:, None, None, None]
+    # e(p) by hand: one dot's fine detail is 8/9 at the dot and -1/9 at its 8 neighbours, zero elsewhere
+    one = torch.zeros(16, 16)
+    one[5:8, 5:8] = (1 / 9) ** 2
+    one[6, 6] = (8 / 9) ** 2
+    expected = one.var(correction=0) / one.mean() ** 2
+    assert float(detail_concentration(fixed)) == pytest.approx(float(expected), rel=1e-5)
+    assert float(detail_concentration(flipping)) == pytest.approx(float(expected), rel=1e-5)
+    assert float(detail_concentration(moving)) < float(expected) / 3  # four places share the energy
+    assert float(detail_concentration(3 * fixed)) == pytest.approx(float(expected), rel=1e-5)  # amount is free
+    loss = float(fixed_pattern_loss(flipping, moving))
+    assert loss == pytest.approx(float(expected - detail_concentration(moving)), rel=1e-5) and loss > 0
+    # no cost where the outputs' detail is no more concentrated than the real batch's, and no NaN on a flat batch
     assert float(fixed_pattern_loss(moving, fixed)) == 0.0
-    assert float(fixed_pattern_loss(fixed, fixed)) == 0.0
-    # a smooth gradient has no fine detail away from the edges, and a flat batch none at all: no NaN
     assert float(fixed_pattern_loss(torch.zeros(4, 3, 16, 16), moving)) == 0.0
 
 
 def test_fixed_pattern_gradient_moves_a_shared_dot_not_the_dots_that_differ():
     """The gradient of the loss is largest at the place of the dot every output has."""
-    outputs = (dots([(6, 6), (6, 6), (3, 12), (12, 3)]) + 0.0).requires_grad_(True)
+    outputs = (dots([(6, 6), (6, 6), (3, 12), (12, 3)]) * 1.0).requires_grad_(True)
     fixed_pattern_loss(outputs, dots([(3, 3), (3, 10), (10, 3), (10, 10)])).backward()
     grad = outputs.grad.abs().sum(dim=(0, 1))
     assert int(grad.argmax()) == 6 * 16 + 6
     assert float(grad[3, 12]) < float(grad[6, 6])
-    with pytest.raises(ValueError, match="2 rows"):
-        fixed_pattern_loss(outputs[:1], outputs[:1])
 
 
 def test_fixed_pattern_weight_0_is_the_step_without_it():
