@@ -881,20 +881,20 @@ def test_mismatch_adds_half_its_weight_times_the_fake_loss_of_real_images_under_
     assert loss_d == pytest.approx(float(expected.detach()), rel=1e-6)
 
 
+def one_step(**terms) -> TranslatorTraining:
+    """The class_gan training (CLASS_GAN with ``terms``) after one step on :func:`batch`, weights drawn from seed 0."""
+    torch.manual_seed(0)
+    training = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, **terms)), "cpu", num_classes=2)
+    training.step(*batch())
+    return training
+
+
 def test_mismatch_weight_0_is_the_step_without_it():
-    without = {k: v for k, v in CLASS_GAN.items()}
-    torch.manual_seed(0)
-    plain = TranslatorTraining(dict(SETTINGS, **without), "cpu", num_classes=2)
-    plain.step(*batch())
-    torch.manual_seed(0)
-    off = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, mismatch=0.0)), "cpu", num_classes=2)
-    off.step(*batch())
+    plain, off = one_step(), one_step(mismatch=0.0)
     for a, b in zip(weights(plain.generator) + weights(plain.discriminator),
                     weights(off.generator) + weights(off.discriminator)):
         assert torch.equal(a, b)
-    torch.manual_seed(0)
-    on = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, mismatch=1.0)), "cpu", num_classes=2)
-    on.step(*batch())
+    on = one_step(mismatch=1.0)
     assert any(not torch.equal(a, b) for a, b in zip(weights(on.discriminator), weights(off.discriminator)))
 
 
@@ -936,17 +936,10 @@ def test_fixed_pattern_gradient_moves_a_shared_dot_not_the_dots_that_differ():
 
 
 def test_fixed_pattern_weight_0_is_the_step_without_it():
-    torch.manual_seed(0)
-    plain = TranslatorTraining(dict(SETTINGS, **CLASS_GAN), "cpu", num_classes=2)
-    plain.step(*batch())
-    torch.manual_seed(0)
-    off = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, fixed_pattern=0.0)), "cpu", num_classes=2)
-    off.step(*batch())
+    plain, off = one_step(), one_step(fixed_pattern=0.0)
     for a, b in zip(weights(plain.generator), weights(off.generator)):
         assert torch.equal(a, b)
-    torch.manual_seed(0)
-    on = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, fixed_pattern=10.0)), "cpu", num_classes=2)
-    on.step(*batch())
+    on = one_step(fixed_pattern=10.0)
     assert any(not torch.equal(a, b) for a, b in zip(weights(on.generator), weights(off.generator)))
     assert "fixed_pattern" not in objective_settings(dict(SETTINGS), {"class_gan": {"r1": 0.1, "fixed_pattern": 0.0}},
                                                       "class_gan", "v2t")
