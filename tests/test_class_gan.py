@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from vtgen.core.augment import augment_policy, colour, cutout, diff_augment, translation
 from vtgen.core.models import ProjectionDiscriminator
 from vtgen.core.classifier import make_classifier, predict
-from vtgen.core.translator import (detail_concentration, fixed_pattern_loss, mode_seeking_loss, nearest_real_loss, other_classes, r1_penalty, recognition_loss, statistics_loss,
+from vtgen.core.translator import (detail_concentration, fine_detail, fixed_pattern_loss, fixed_sign_loss, fixed_sign_share, mode_seeking_loss, nearest_real_loss, other_classes, r1_penalty, recognition_loss, statistics_loss,
                                    TranslatorTraining)
 from vtgen.stages.train import _draw, build_guide, objective_settings, PairData, resolve_objective
 from vtgen.io.params import set_keys, with_recipe
@@ -943,6 +943,77 @@ def test_fixed_pattern_weight_0_is_the_step_without_it():
     assert any(not torch.equal(a, b) for a, b in zip(weights(on.generator), weights(off.generator)))
     assert "fixed_pattern" not in objective_settings(dict(SETTINGS), {"class_gan": {"r1": 0.1, "fixed_pattern": 0.0}},
                                                       "class_gan", "v2t")
+
+
+def lattice(size: int = 16) -> torch.Tensor:
+    """A 1 x 3 x size x size grey checkerboard of 0 and 1 (the transposed convolution's artefact): fine detail of one
+    size at every pixel."""
+    rows, columns = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
+    return ((rows + columns) % 2).float().expand(1, 3, size, size).clone()
+
+
+def test_fixed_sign_charges_a_shared_lattice_that_the_concentration_cost_leaves_free():
+    """A checkerboard over the whole image, the same in every output: its detail is spread evenly, so the concentration
+    cost is 0 against noisy real images, but all of each output's detail lies along the shared pattern (share 1)."""
+    g = torch.Generator().manual_seed(0)
+    real = torch.rand(4, 3, 16, 16, generator=g)
+    shared = lattice().repeat(4, 1, 1, 1)
+    pattern = fine_detail(shared).mean(dim=0)
+    assert float(fixed_pattern_loss(shared, real)) == 0.0
+    assert float(fixed_sign_share(shared, pattern)) == pytest.approx(1.0, abs=1e-5)
+    flipping = shared * torch.tensor([1.0, -1.0, 1.0, -1.0])[:, None, None, None]
+    assert float(fixed_sign_share(flipping, pattern)) == pytest.approx(1.0, abs=1e-5)  # squared per image
+    assert float(fixed_sign_share(5 * shared, pattern)) == pytest.approx(1.0, abs=1e-5)  # the amount is free
+    # independent noise keeps about 1/D of its detail along one direction (D = 3 x 16 x 16 values)
+    assert float(fixed_sign_share(real, pattern)) < 0.02
+    loss = float(fixed_sign_loss(shared, real, pattern))
+    assert loss == pytest.approx(1.0 - float(fixed_sign_share(real, pattern)), rel=1e-5)
+    assert float(fixed_sign_loss(real, shared, pattern)) == 0.0  # no cost below the real images' own share
+    assert float(fixed_sign_share(shared, torch.zeros_like(pattern))) == 0.0  # no pattern yet: no cost, no NaN
+
+
+def test_fixed_sign_gradient_removes_the_shared_pattern():
+    """One gradient step on the loss lowers each output's detail along the pattern."""
+    pattern = fine_detail(lattice()).squeeze(0)
+    g = torch.Generator().manual_seed(1)
+    outputs = (lattice().repeat(4, 1, 1, 1) + 0.3 * torch.rand(4, 3, 16, 16, generator=g)).requires_grad_(True)
+    real = torch.rand(4, 3, 16, 16, generator=g)
+    before = float(fixed_sign_share(outputs.detach(), pattern))
+    fixed_sign_loss(outputs, real, pattern).backward()
+    after = float(fixed_sign_share(outputs.detach() - 0.5 * outputs.grad / outputs.grad.norm(), pattern))
+    assert after < before
+
+
+def test_fixed_sign_running_mean_follows_the_outputs_detail_with_a_warm_up():
+    training = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, fixed_sign=1.0)), "cpu", num_classes=2)
+    first, second = lattice(32).repeat(4, 1, 1, 1), torch.zeros(4, 3, 32, 32)
+    training.update_detail_mean(first)
+    assert torch.allclose(training.detail_mean, fine_detail(first).mean(dim=0))
+    training.update_detail_mean(second)  # d_2 = min(0.99, 3/12) = 0.25: the mean keeps a quarter of the first
+    assert torch.allclose(training.detail_mean, 0.25 * fine_detail(first).mean(dim=0), atol=1e-7)
+
+
+def test_fixed_sign_weight_0_is_the_step_without_it_and_a_resumed_run_continues_the_same():
+    plain, off = one_step(), one_step(fixed_sign=0.0)
+    for a, b in zip(weights(plain.generator), weights(off.generator)):
+        assert torch.equal(a, b)
+    assert off.detail_mean is None and "detail_mean" not in off.state_dict()
+    on = one_step(fixed_sign=10.0)
+    assert any(not torch.equal(a, b) for a, b in zip(weights(on.generator), weights(off.generator)))
+    assert "fixed_sign" not in objective_settings(dict(SETTINGS), {"class_gan": {"r1": 0.1, "fixed_sign": 0.0}},
+                                                   "class_gan", "v2t")
+    # a run resumed from a checkpoint after step 1 takes the same step 2 as the run that went on: the running mean
+    # is part of the state (without it the resumed step's cost would see step 2's detail alone)
+    state = copy.deepcopy(on.state_dict())
+    torch.manual_seed(5)
+    on.step(*batch(1))
+    resumed = TranslatorTraining(dict(SETTINGS, **dict(CLASS_GAN, fixed_sign=10.0)), "cpu", num_classes=2)
+    resumed.load_state_dict(state)
+    torch.manual_seed(5)
+    resumed.step(*batch(1))
+    for a, b in zip(weights(on.generator), weights(resumed.generator)):
+        assert torch.equal(a, b)
+    assert torch.equal(on.detail_mean, resumed.detail_mean) and resumed.detail_updates == 2
 
 
 def test_with_mismatch_the_discriminator_learns_which_class_a_real_image_belongs_to():

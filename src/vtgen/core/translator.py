@@ -33,6 +33,7 @@ PRECISIONS = ("fp32", "bf16")
 OBJECTIVES = ("pix2pix", "class_gan")
 MODE_SEEKING_EPS = 1e-5  # floor of the real gap in the mode-seeking ratio
 FIXED_PATTERN_EPS = 1e-12  # floor of the squared mean fine-detail energy in the detail concentration
+FIXED_SIGN_DECAY = 0.99  # decay of the running mean of the outputs' fine detail that ``fixed_sign`` charges (about 100 batches)
 NCE_LEVELS = (0, 1, 2)  # generator encoder levels PatchNCE compares (at 64 px: 32, 16 and 8 px maps)
 
 
@@ -73,7 +74,7 @@ class TranslatorTraining:
     ``input_channels`` is the generator's input: the 3 image channels plus those of a
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
-    ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``mode_seeking_per_pair``, ``pack``, ``statistics``, ``fixed_pattern``, ``class_guidance``, ``skips``,
+    ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``mode_seeking_per_pair``, ``pack``, ``statistics``, ``fixed_pattern``, ``fixed_sign``, ``class_guidance``, ``skips``,
     ``latent``, ``upsample``, ``padding``, ``semantic``, ``mismatch``, ``nce``, ``texture``, ``contextual`` (see :meth:`class_step`), ``d_lr_ratio`` (D's learning rate over
     G's), ``ema`` (:meth:`update_average`: the generator a run yields is the average of its weights), ``lr_decay``
     (:meth:`schedule_learning_rate`) and ``generator`` (:func:`vtgen.core.models.build_generator`: unet, the default, or resnet), and needs ``num_classes``; ``semantic`` > 0 needs ``guide``, a classifier of the target modality over the
@@ -122,6 +123,8 @@ class TranslatorTraining:
         self.average, self.average_updates = None, 0
         if self.ema_decay:
             self.average = copy.deepcopy(self.generator).requires_grad_(False)
+        # class_gan's fixed_sign: the running mean of the outputs' fine detail (C x H x W), and its update count
+        self.detail_mean, self.detail_updates = None, 0
         g_parameters = list(self.generator.parameters())
         if self.nce_projection is not None:
             g_parameters += list(self.nce_projection.parameters())
@@ -240,6 +243,9 @@ class TranslatorTraining:
         With ``fixed_pattern`` w > 0, G += w·:func:`fixed_pattern_loss` (G(x), y): the outputs' fine detail may be
         no more concentrated at fixed pixel positions over the batch than the real images' is, so that detail (the
         grain ``statistics`` asks for) cannot come as a fixed lattice of dots.
+        With ``fixed_sign`` w > 0, G += w·:func:`fixed_sign_loss` (G(x), y, m): m the running mean of the outputs' fine
+        detail (:meth:`update_detail_mean`, over about 100 batches), so that a pattern every output draws with the same
+        sign, spread over the whole image (which ``fixed_pattern``, charging places, leaves free), costs its share.
         With ``texture`` w > 0, G += w·:func:`vtgen.core.texture.texture_loss` (G(x), y): the feature covariances (centred
         Gram matrices) of a fixed random filter bank (texture statistics, Gatys et al. 2015; random filters,
         Ustyuzhaninov et al. 2017) of each output against those of the real image of its class in its row:
@@ -341,6 +347,10 @@ class TranslatorTraining:
         fixed_pattern = cfg.get("fixed_pattern", 0.0)
         if fixed_pattern:
             loss_g = loss_g + fixed_pattern * fixed_pattern_loss(fake.float(), y)
+        fixed_sign = cfg.get("fixed_sign", 0.0)
+        if fixed_sign:
+            self.update_detail_mean(fake)
+            loss_g = loss_g + fixed_sign * fixed_sign_loss(fake.float(), y, self.detail_mean)
         if texture:
             loss_g = loss_g + texture * texture_loss(fake, y, self.texture_bank)
         if contextual:
@@ -387,6 +397,18 @@ class TranslatorTraining:
             else:
                 average.copy_(live)
 
+    @torch.no_grad()
+    def update_detail_mean(self, outputs: torch.Tensor) -> None:
+        """m ← d_t·m + (1 − d_t)·mean_b h(o_b), h = :func:`fine_detail`, d_t = min(:data:`FIXED_SIGN_DECAY`, (1 + t)/(10 + t))
+        at update t (counted from 1; the warm-up of :meth:`update_average`): the fine detail the outputs share, sign included."""
+        self.detail_updates += 1
+        t = self.detail_updates
+        batch_mean = fine_detail(outputs.detach().float()).mean(dim=0)
+        if self.detail_mean is None:
+            self.detail_mean = batch_mean
+            return
+        self.detail_mean.lerp_(batch_mean, 1.0 - min(FIXED_SIGN_DECAY, (1 + t) / (10 + t)))
+
     def generator_norm(self) -> float:
         """L2 norm of all generator parameters, ‖θ_G‖₂ = sqrt(Σ θ²) (a host sync)."""
         return float(torch.linalg.vector_norm(torch.stack(
@@ -394,13 +416,16 @@ class TranslatorTraining:
 
     def state_dict(self) -> dict:
         """Both networks and both optimisers, under the keys of :data:`STATE_KEYS`, PatchNCE's projection heads
-        under 'nce_projection' when ``nce`` is on, and the weight average under 'average' when ``ema`` is on."""
+        under 'nce_projection' when ``nce`` is on, the weight average under 'average' when ``ema`` is on, and the running
+        mean of the outputs' fine detail under 'detail_mean' once ``fixed_sign`` has updated it."""
         state = {"generator": self.generator.state_dict(), "discriminator": self.discriminator.state_dict(),
                  "opt_g": self.opt_g.state_dict(), "opt_d": self.opt_d.state_dict()}
         if self.nce_projection is not None:
             state["nce_projection"] = self.nce_projection.state_dict()
         if self.average is not None:
             state["average"] = {"generator": self.average.state_dict(), "updates": self.average_updates}
+        if self.detail_mean is not None:
+            state["detail_mean"] = {"mean": self.detail_mean.clone(), "updates": self.detail_updates}
         return state
 
     def load_state_dict(self, state: dict) -> None:
@@ -416,6 +441,9 @@ class TranslatorTraining:
         if self.average is not None:
             self.average.load_state_dict(state["average"]["generator"])
             self.average_updates = int(state["average"]["updates"])
+        if "detail_mean" in state:
+            self.detail_mean = state["detail_mean"]["mean"].clone().to(self.device)
+            self.detail_updates = int(state["detail_mean"]["updates"])
 
 
 def other_classes(labels: torch.Tensor, num_classes: int) -> torch.Tensor:
@@ -483,6 +511,28 @@ def fixed_pattern_loss(outputs: torch.Tensor, targets: torch.Tensor) -> torch.Te
     much as dots that do not (a signed batch mean, tried first, was evaded that way: benchmarks/README.md,
     Fifty-fourth round). ``targets`` is data (detached)."""
     return torch.relu(detail_concentration(outputs) - detail_concentration(targets.detach().float()))
+
+
+def fixed_sign_share(images: torch.Tensor, pattern: torch.Tensor) -> torch.Tensor:
+    """s = mean_b ⟨h_b, u⟩² / (mean_b ‖h_b‖² + ε), u = m/‖m‖, h = :func:`fine_detail` of ``images`` (N x C x H x W), m =
+    ``pattern`` (C x H x W): the share of the images' fine-detail energy that lies along one fixed signed pattern.
+    Squared per image, so an image that draws the pattern with the opposite sign pays as much; unchanged when all
+    detail is scaled; 0 for a zero pattern."""
+    detail = fine_detail(images)
+    norm = pattern.norm()
+    if float(norm) == 0.0:
+        return detail.sum() * 0.0
+    along = (detail * (pattern / norm)).flatten(1).sum(dim=1)
+    return along.pow(2).mean() / (detail.pow(2).flatten(1).sum(dim=1).mean() + FIXED_PATTERN_EPS)
+
+
+def fixed_sign_loss(outputs: torch.Tensor, targets: torch.Tensor, pattern: torch.Tensor) -> torch.Tensor:
+    """max(0, s(outputs) − s(targets)) with s = :func:`fixed_sign_share` along ``pattern``, the running mean of the outputs'
+    fine detail (detached): a pattern the outputs share with one sign (a lattice over the whole image, whose detail is
+    not concentrated at a few places, so :func:`fixed_pattern_loss` leaves it free) costs its share of each output's
+    detail beyond what real images of the batch keep along it. ``targets`` is data (detached)."""
+    pattern = pattern.detach().float()
+    return torch.relu(fixed_sign_share(outputs, pattern) - fixed_sign_share(targets.detach().float(), pattern))
 
 
 def mode_seeking_loss(outputs: torch.Tensor, targets: torch.Tensor, pool: int = 1, per_pair: bool = False) -> torch.Tensor:
