@@ -472,7 +472,7 @@ def test_class_gan_iterations_replace_the_presets_per_direction(default_params):
 
     from vtgen.io.params import ParamsError, validate_params
     params = copy.deepcopy(default_params)
-    assert params["translation"]["class_gan"]["iterations"] == {"v2t": 6000, "t2v": None}  # V2T needs the length
+    assert params["translation"]["class_gan"]["iterations"] == {"v2t": 6000, "t2v": 3000}  # V2T needs the length
     params["translation"]["class_gan"]["iterations"] = None
     plain = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")
     assert plain["iterations"] == SETTINGS["iterations"]
