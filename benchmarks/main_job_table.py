@@ -15,7 +15,7 @@ import argparse
 import json
 from pathlib import Path
 
-TARGET = {"v2t": "tactile", "t2v": "visual"}
+from unaligned_goals import MODALITY
 
 
 def interval(entry: dict | None) -> str:
@@ -34,7 +34,7 @@ def gain(metrics: dict, setting: str, real: str) -> str:
 
 def row(name: str, run: Path, direction: str) -> str:
     goals = json.loads((run / "data/scores/summary.json").read_text())["goals"][direction]
-    metrics = json.loads((run / "reports/metrics.json").read_text())["classify"][TARGET[direction]]
+    metrics = json.loads((run / "reports/metrics.json").read_text())["classify"][MODALITY[direction][1]]
     model = run / "models" / direction / "all"
     train = json.loads((model / "train.json").read_text())
     timing = json.loads((model / "timing.json").read_text())
@@ -51,7 +51,7 @@ def row(name: str, run: Path, direction: str) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--direction", choices=sorted(TARGET), required=True)
+    parser.add_argument("--direction", choices=sorted(MODALITY), required=True)
     parser.add_argument("runs", nargs="+", help="name=run folder")
     args = parser.parse_args()
     header = ["run", "coverage [95%]", "diversity px / feat", "FID (classifier) [95%]", "KID (classifier) [95%]",
