@@ -33,6 +33,9 @@ here on the real training images of the run with the classify stage's settings):
 * concentration: :func:`vtgen.core.translator.detail_concentration` over the set (what ``class_gan.fixed_pattern``
   reads per batch): how unevenly over pixel positions the set keeps its fine detail, whatever its sign. Compare
   both with the real held-out row, whose n is close.
+* detail overlap: :func:`vtgen.core.translator.detail_overlap` (what ``class_gan.shared_detail`` reads per batch), the mean
+  over :data:`OVERLAP_DRAWS` random batches of :data:`OVERLAP_BATCH` images of the set (:func:`mean_detail_overlap`): how
+  alike two images' fine detail is, any sign, anywhere (about f² for a pattern that is a share f of every image's detail).
 
     python benchmarks/unaligned_ablation.py --run /tmp/xu --direction v2t --seeds 0 1 \\
         --variant pix2pix:objective=pix2pix --variant class_gan:objective=class_gan
@@ -64,7 +67,7 @@ from vtgen.core.distribution import (classifier_encoder, diversity_ratio, fid, f
                                      spectrum_distance)
 from vtgen.core.domain import DIRECTIONS
 from vtgen.core.referee import at_side as resized  # area-resized uint8 tiles at the classifier's side
-from vtgen.core.translator import detail_concentration, fine_detail
+from vtgen.core.translator import detail_concentration, detail_overlap, fine_detail
 from vtgen.io.checkpoints import load_translator
 from vtgen.io.images import labelled_sheet, read_tiles, write_png
 from vtgen.io.params import model_settings, validate_params, with_recipe
@@ -205,6 +208,18 @@ def fixed_share(images: torch.Tensor) -> float:
     return float(detail.mean(dim=0).pow(2).sum() / detail.pow(2).mean(dim=0).sum().clamp_min(1e-12))
 
 
+OVERLAP_BATCH, OVERLAP_DRAWS = 16, 20  # batches of the vt60 presets' size; draws from a generator seeded 0
+
+
+def mean_detail_overlap(images: torch.Tensor) -> float:
+    """Mean of :func:`vtgen.core.translator.detail_overlap` over :data:`OVERLAP_DRAWS` batches of :data:`OVERLAP_BATCH`
+    images of ``images`` drawn without replacement (torch generator seeded 0, so a set always gets the same number)."""
+    g = torch.Generator().manual_seed(0)
+    size = min(OVERLAP_BATCH, len(images))
+    return float(np.mean([float(detail_overlap(images[torch.randperm(len(images), generator=g)[:size]].float()))
+                          for _ in range(OVERLAP_DRAWS)]))
+
+
 def goal_numbers(generated: torch.Tensor, classes: np.ndarray, context: dict) -> dict:
     encoder, side = context["encoder"], context["side"]
     features = image_features(encoder, resized(generated, side))
@@ -231,6 +246,7 @@ def goal_numbers(generated: torch.Tensor, classes: np.ndarray, context: dict) ->
         "fixed_spikes": int((spike_map(generated) > context["spike_threshold"]).sum()),
         "fixed_share": fixed_share(generated),
         "concentration": float(detail_concentration(generated.float())),
+        "overlap": mean_detail_overlap(generated),
     }
     return out
 
@@ -289,7 +305,7 @@ def row(name: str, seed, r: dict) -> str:
     return (f"| {name} | {seed} | {r['n']} | {ci(r['diversity_pixels'])} | {ci(r['diversity_features'])} | "
             f"{r['prdc']['recall']:.2f} / {r['prdc']['coverage']:.2f} | {r['fid']:.1f} | "
             f"{k[0]:.4f} ± {1.96 * k[1]:.4f} | {c[0]:.4f} [{c[1]:.4f}, {c[2]:.4f}] | {r['gan_test']:.3f} [{low:.3f}, {high:.3f}] | {r['gan_test_blurred']:.3f} | "
-            f"{r['memorisation']:.3f} | {r['edge_outliers']:.3f} | {r['spectrum']:.3f} | {r['fixed_spikes']} | {r['fixed_share']:.3f} | {r['concentration']:.2f} | {r.get('seconds', 0):.0f} |")
+            f"{r['memorisation']:.3f} | {r['edge_outliers']:.3f} | {r['spectrum']:.3f} | {r['fixed_spikes']} | {r['fixed_share']:.3f} | {r['concentration']:.2f} | {r['overlap']:.4f} | {r.get('seconds', 0):.0f} |")
 
 
 def main() -> None:
@@ -325,7 +341,7 @@ def main() -> None:
           f"input {in_acc:.3f} (n = {in_n}); GAN-test goal >= {0.8 * min(acc, in_acc):.3f}", flush=True)
     header = ("| variant | seed | n | diversity pixels [95%] | diversity features [95%] | recall / coverage | FID | "
               "KID ± 95% | class-wise KID [95%] | GAN-test [95%] | GAN-test, blurred | memorisation | edge outliers | "
-              "spectrum distance | fixed spikes | fixed share | concentration | train s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+              "spectrum distance | fixed spikes | fixed share | concentration | detail overlap | train s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [row(name, "-", r) for name, r in context["references"].items()]
     if args.model:
         generator, meta = load_translator(args.model)

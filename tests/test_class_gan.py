@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from vtgen.core.augment import augment_policy, colour, cutout, diff_augment, translation
 from vtgen.core.models import ProjectionDiscriminator
 from vtgen.core.classifier import make_classifier, predict
-from vtgen.core.translator import (detail_concentration, fine_detail, fixed_pattern_loss, fixed_sign_loss, fixed_sign_share, mode_seeking_loss, nearest_real_loss, other_classes, r1_penalty, recognition_loss, statistics_loss,
+from vtgen.core.translator import (detail_concentration, detail_overlap, fine_detail, fixed_pattern_loss, fixed_sign_loss, fixed_sign_share, mode_seeking_loss, shared_detail_loss, nearest_real_loss, other_classes, r1_penalty, recognition_loss, statistics_loss,
                                    TranslatorTraining)
 from vtgen.stages.train import _draw, build_guide, objective_settings, PairData, resolve_objective
 from vtgen.io.params import set_keys, with_recipe
@@ -1014,6 +1014,75 @@ def test_fixed_sign_weight_0_is_the_step_without_it_and_a_resumed_run_continues_
     for a, b in zip(weights(on.generator), weights(resumed.generator)):
         assert torch.equal(a, b)
     assert torch.equal(on.detail_mean, resumed.detail_mean) and resumed.detail_updates == 2
+
+
+def stripes(size: int = 16) -> torch.Tensor:
+    """A 1 x 3 x size x size grey pattern of alternating bright and dark columns: a pattern other than :func:`lattice`."""
+    columns = torch.arange(size) % 2
+    return columns.float().expand(1, 3, size, size).clone()
+
+
+def test_detail_overlap_is_1_for_one_shared_pattern_whatever_its_sign_and_amount_and_small_for_noise():
+    signs = torch.tensor([1.0, -1.0, 2.0, -3.0])[:, None, None, None]
+    assert float(detail_overlap(lattice().repeat(4, 1, 1, 1) * signs)) == pytest.approx(1.0, abs=1e-5)
+    g = torch.Generator().manual_seed(0)
+    noise = torch.rand(8, 3, 16, 16, generator=g)
+    assert float(detail_overlap(noise)) < 0.01  # about 1/D for D = 768 independent values
+    # a pattern that is half of each image's detail energy, the rest independent noise: overlap about (1/2)² = 1/4
+    detail = fine_detail(noise).flatten(1)
+    pattern = fine_detail(lattice()).flatten()
+    scaled = pattern / pattern.norm() * detail.norm(dim=1, keepdim=True)
+    assert float(detail_overlap_of_detail(detail + scaled)) == pytest.approx(0.25, abs=0.05)
+    assert float(detail_overlap(torch.zeros(4, 3, 16, 16))) == 0.0  # flat images: no NaN
+    with pytest.raises(ValueError, match="at least 2 images"):
+        detail_overlap(noise[:1])
+
+
+def detail_overlap_of_detail(detail: torch.Tensor) -> torch.Tensor:
+    """detail_overlap's formula on given fine detail (N x D), by hand: Σ_{i≠j} ⟨h_i, h_j⟩² / Σ_{i≠j} ‖h_i‖²‖h_j‖²."""
+    n = detail.shape[0]
+    pairs = [(i, j) for i in range(n) for j in range(n) if i != j]
+    alike = sum(float(detail[i] @ detail[j]) ** 2 for i, j in pairs)
+    return torch.tensor(alike / sum(float(detail[i] @ detail[i]) * float(detail[j] @ detail[j]) for i, j in pairs))
+
+
+def test_detail_overlap_matches_its_formula_by_hand():
+    images = torch.rand(5, 3, 8, 8, generator=torch.Generator().manual_seed(2))
+    expected = detail_overlap_of_detail(fine_detail(images).flatten(1))
+    assert float(detail_overlap(images)) == pytest.approx(float(expected), rel=1e-5)
+
+
+def test_shared_detail_charges_a_new_shared_pattern_that_the_running_mean_has_not_seen():
+    """The running mean of ``fixed_sign`` knows the checkerboard; outputs that moved to shared stripes keep none of their
+    detail along it and go free there, while the overlap, read from the batch itself, charges them in full."""
+    g = torch.Generator().manual_seed(0)
+    real = torch.rand(4, 3, 16, 16, generator=g)
+    moved = stripes().repeat(4, 1, 1, 1) * torch.tensor([1.0, -1.0, 1.0, 2.0])[:, None, None, None]
+    old_pattern = fine_detail(lattice()).squeeze(0)
+    assert float(fixed_sign_loss(moved, real, old_pattern)) < 0.01
+    loss = float(shared_detail_loss(moved, real))
+    assert loss == pytest.approx(1.0 - float(detail_overlap(real)), rel=1e-5) and loss > 0.9
+    assert float(shared_detail_loss(real, moved)) == 0.0  # no cost below the real batch's own overlap
+
+
+def test_shared_detail_gradient_lowers_the_overlap():
+    g = torch.Generator().manual_seed(1)
+    outputs = (lattice().repeat(4, 1, 1, 1) + 0.5 * torch.rand(4, 3, 16, 16, generator=g)).requires_grad_(True)
+    real = torch.rand(4, 3, 16, 16, generator=g)
+    before = float(detail_overlap(outputs.detach()))
+    shared_detail_loss(outputs, real).backward()
+    after = float(detail_overlap(outputs.detach() - 0.5 * outputs.grad / outputs.grad.norm()))
+    assert after < before
+
+
+def test_shared_detail_weight_0_is_the_step_without_it():
+    plain, off = one_step(), one_step(shared_detail=0.0)
+    for a, b in zip(weights(plain.generator), weights(off.generator)):
+        assert torch.equal(a, b)
+    on = one_step(shared_detail=10.0)
+    assert any(not torch.equal(a, b) for a, b in zip(weights(on.generator), weights(off.generator)))
+    assert "shared_detail" not in objective_settings(dict(SETTINGS), {"class_gan": {"r1": 0.1, "shared_detail": 0.0}},
+                                                      "class_gan", "v2t")
 
 
 def test_with_mismatch_the_discriminator_learns_which_class_a_real_image_belongs_to():

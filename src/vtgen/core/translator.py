@@ -74,7 +74,7 @@ class TranslatorTraining:
     ``input_channels`` is the generator's input: the 3 image channels plus those of a
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
-    ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``mode_seeking_per_pair``, ``pack``, ``statistics``, ``fixed_pattern``, ``fixed_sign``, ``class_guidance``, ``skips``,
+    ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``mode_seeking_per_pair``, ``pack``, ``statistics``, ``fixed_pattern``, ``fixed_sign``, ``shared_detail``, ``class_guidance``, ``skips``,
     ``latent``, ``upsample``, ``padding``, ``semantic``, ``mismatch``, ``nce``, ``texture``, ``contextual`` (see :meth:`class_step`), ``d_lr_ratio`` (D's learning rate over
     G's), ``ema`` (:meth:`update_average`: the generator a run yields is the average of its weights), ``lr_decay``
     (:meth:`schedule_learning_rate`) and ``generator`` (:func:`vtgen.core.models.build_generator`: unet, the default, or resnet), and needs ``num_classes``; ``semantic`` > 0 needs ``guide``, a classifier of the target modality over the
@@ -246,6 +246,9 @@ class TranslatorTraining:
         With ``fixed_sign`` w > 0, G += w·:func:`fixed_sign_loss` (G(x), y, m): m the running mean of the outputs' fine
         detail (:meth:`update_detail_mean`, over about 100 batches), so that a pattern every output draws with the same
         sign, spread over the whole image (which ``fixed_pattern``, charging places, leaves free), costs its share.
+        With ``shared_detail`` w > 0, G += w·:func:`shared_detail_loss` (G(x), y): two outputs' fine detail may be no more
+        alike (mean squared cosine over the batch's pairs) than two real images' is, so a pattern the outputs share, with
+        either sign and wherever it lies, costs as it appears, measured on the batch itself (no reference that can lag).
         With ``texture`` w > 0, G += w·:func:`vtgen.core.texture.texture_loss` (G(x), y): the feature covariances (centred
         Gram matrices) of a fixed random filter bank (texture statistics, Gatys et al. 2015; random filters,
         Ustyuzhaninov et al. 2017) of each output against those of the real image of its class in its row:
@@ -351,6 +354,9 @@ class TranslatorTraining:
         if fixed_sign:
             self.update_detail_mean(fake)
             loss_g = loss_g + fixed_sign * fixed_sign_loss(fake.float(), y, self.detail_mean)
+        shared_detail = cfg.get("shared_detail", 0.0)
+        if shared_detail:
+            loss_g = loss_g + shared_detail * shared_detail_loss(fake.float(), y)
         if texture:
             loss_g = loss_g + texture * texture_loss(fake, y, self.texture_bank)
         if contextual:
@@ -533,6 +539,32 @@ def fixed_sign_loss(outputs: torch.Tensor, targets: torch.Tensor, pattern: torch
     detail beyond what real images of the batch keep along it. ``targets`` is data (detached)."""
     pattern = pattern.detach().float()
     return torch.relu(fixed_sign_share(outputs, pattern) - fixed_sign_share(targets.detach().float(), pattern))
+
+
+def detail_overlap(images: torch.Tensor) -> torch.Tensor:
+    """o = Σ_{i≠j} ⟨h_i, h_j⟩² / (Σ_{i≠j} ‖h_i‖²‖h_j‖² + ε), h = :func:`fine_detail` of each of the N images (N x C x H x W,
+    N ≥ 2), flattened: how alike two images' fine detail is, the mean squared cosine between two of them weighted by
+    their energies (a sum over pairs in the denominator, so a nearly flat image cannot make it unstable). In [0, 1]
+    (Cauchy-Schwarz): 1 when all share one pattern, whatever each one's sign and amount of it; about 1/D for
+    independent detail of D values; a pattern making up a share f of each image's detail gives about f²."""
+    n = images.shape[0]
+    if n < 2:
+        raise ValueError(f"detail overlap compares images in pairs: it needs at least 2 images, got {n}")
+    detail = fine_detail(images).flatten(1)
+    gram = detail @ detail.T
+    energy = gram.diagonal()
+    alike = gram.pow(2).sum() - energy.pow(2).sum()
+    scale = energy.sum().pow(2) - energy.pow(2).sum()
+    return alike / (scale + FIXED_PATTERN_EPS)
+
+
+def shared_detail_loss(outputs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """max(0, o(outputs) − o(targets)) with o = :func:`detail_overlap`: fine detail the outputs of a batch have in common
+    (a lattice of a transposed convolution, a fixed motif) costs what it adds beyond the real batch's own (a sensor's
+    fixed pattern is allowed), computed on the batch itself, so unlike :func:`fixed_sign_loss`'s running mean it has no
+    reference the generator can move away from; squared, so a pattern drawn with flipped signs costs the same.
+    ``targets`` is data (detached)."""
+    return torch.relu(detail_overlap(outputs) - detail_overlap(targets.detach().float()))
 
 
 def mode_seeking_loss(outputs: torch.Tensor, targets: torch.Tensor, pool: int = 1, per_pair: bool = False) -> torch.Tensor:
