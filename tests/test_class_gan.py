@@ -333,6 +333,31 @@ def test_statistics_loss_on_known_inputs():
     assert outputs.grad is not None and outputs.grad.abs().sum() > 0
 
 
+def test_statistics_without_the_spectrum_charges_colour_and_contrast_only():
+    """``statistics_spectrum`` false: stripes against a flat image of their mean and contrast cost nothing (the spectrum
+    part alone tells them apart), while a colour shift still costs its size; true is the full term."""
+    board = ((torch.arange(16)[None, :] // 2) % 2 * 2.0 - 1).expand(2, 3, 16, 16)
+    noise = torch.randn(2, 3, 16, 16, generator=torch.Generator().manual_seed(0))
+    smooth = F.avg_pool2d(F.pad(noise, (3, 3, 3, 3), mode="circular"), 7, stride=1)
+    smooth = (smooth - smooth.mean(dim=(2, 3), keepdim=True)) / smooth.std(dim=(2, 3), keepdim=True) * board.std(dim=(2, 3), keepdim=True)
+    assert float(statistics_loss(board, smooth, spectrum=False)) == pytest.approx(0.0, abs=1e-5)
+    assert float(statistics_loss(board, smooth)) > 0.1
+    flat = torch.zeros(2, 3, 16, 16)
+    assert float(statistics_loss(flat + 0.5, flat, spectrum=False)) == pytest.approx(0.5)
+
+
+def test_statistics_spectrum_true_adds_no_key_and_false_changes_the_step():
+    assert "statistics_spectrum" not in objective_settings(
+        dict(SETTINGS), {"class_gan": {"r1": 0.1, "statistics": 1.0, "statistics_spectrum": True}}, "class_gan", "v2t")
+    assert objective_settings(dict(SETTINGS), {"class_gan": {"r1": 0.1, "statistics_spectrum": {"v2t": False, "t2v": True}}},
+                              "class_gan", "v2t")["statistics_spectrum"] is False
+    full, plain = one_step(statistics=1.0), one_step(statistics=1.0, statistics_spectrum=True)
+    for a, b in zip(weights(full.generator), weights(plain.generator)):
+        assert torch.equal(a, b)
+    colour = one_step(statistics=1.0, statistics_spectrum=False)
+    assert any(not torch.equal(a, b) for a, b in zip(weights(colour.generator), weights(full.generator)))
+
+
 def test_r1_penalty_on_a_linear_discriminator():
     real = torch.rand(2, 3, 4, 4).requires_grad_(True)
     logits = (3.0 * real).sum(dim=(1, 2, 3))  # gradient 3 at every pixel
