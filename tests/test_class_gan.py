@@ -960,14 +960,14 @@ def test_fixed_pattern_gradient_moves_a_shared_dot_not_the_dots_that_differ():
     assert float(grad[3, 12]) < float(grad[6, 6])
 
 
-def test_fixed_pattern_weight_0_is_the_step_without_it():
-    plain, off = one_step(), one_step(fixed_pattern=0.0)
+@pytest.mark.parametrize("term", ["fixed_pattern", "shared_detail"])
+def test_detail_cost_weight_0_is_the_step_without_it(term):
+    plain, off = one_step(), one_step(**{term: 0.0})
     for a, b in zip(weights(plain.generator), weights(off.generator)):
         assert torch.equal(a, b)
-    on = one_step(fixed_pattern=10.0)
+    on = one_step(**{term: 10.0})
     assert any(not torch.equal(a, b) for a, b in zip(weights(on.generator), weights(off.generator)))
-    assert "fixed_pattern" not in objective_settings(dict(SETTINGS), {"class_gan": {"r1": 0.1, "fixed_pattern": 0.0}},
-                                                      "class_gan", "v2t")
+    assert term not in objective_settings(dict(SETTINGS), {"class_gan": {"r1": 0.1, term: 0.0}}, "class_gan", "v2t")
 
 
 def lattice(size: int = 16) -> torch.Tensor:
@@ -1098,16 +1098,6 @@ def test_shared_detail_gradient_lowers_the_overlap():
     shared_detail_loss(outputs, real).backward()
     after = float(detail_overlap(outputs.detach() - 0.5 * outputs.grad / outputs.grad.norm()))
     assert after < before
-
-
-def test_shared_detail_weight_0_is_the_step_without_it():
-    plain, off = one_step(), one_step(shared_detail=0.0)
-    for a, b in zip(weights(plain.generator), weights(off.generator)):
-        assert torch.equal(a, b)
-    on = one_step(shared_detail=10.0)
-    assert any(not torch.equal(a, b) for a, b in zip(weights(on.generator), weights(off.generator)))
-    assert "shared_detail" not in objective_settings(dict(SETTINGS), {"class_gan": {"r1": 0.1, "shared_detail": 0.0}},
-                                                      "class_gan", "v2t")
 
 
 def test_with_mismatch_the_discriminator_learns_which_class_a_real_image_belongs_to():
