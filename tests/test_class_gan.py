@@ -358,6 +358,34 @@ def test_statistics_spectrum_true_adds_no_key_and_false_changes_the_step():
     assert any(not torch.equal(a, b) for a, b in zip(weights(colour.generator), weights(full.generator)))
 
 
+def test_pooled_contrast_is_not_met_by_dots_finer_than_the_pool():
+    """``statistics_pool`` 4: a lattice of one-pixel dots (one per 4 x 4 cell) with a smooth image's per-pixel contrast
+    meets the contrast target per pixel (pool 1) but has none between 4 x 4 means, so it pays there; the smooth image
+    against itself pays nothing at either pool."""
+    rows = torch.linspace(-1, 1, 16)
+    ramp = (rows[:, None] + rows[None, :]).expand(2, 3, 16, 16) / 2  # smooth: contrast survives 4 x 4 means
+    dots = torch.zeros(16, 16)
+    dots[1::4, 2::4] = 1.0
+    dots = (dots - dots.mean()).expand(2, 3, 16, 16)
+    dots = dots / dots.std(dim=(2, 3), keepdim=True) * ramp.std(dim=(2, 3), keepdim=True) + ramp.mean()
+    assert float(statistics_loss(dots, ramp, spectrum=False)) == pytest.approx(0.0, abs=1e-5)
+    pooled = float(statistics_loss(dots, ramp, spectrum=False, pool=4))
+    assert pooled == pytest.approx(float(F.avg_pool2d(ramp, 4).std(dim=(2, 3)).mean()), rel=1e-4) and pooled > 0.3
+    assert float(statistics_loss(ramp, ramp.clone(), pool=4)) == 0.0
+
+
+def test_statistics_pool_1_adds_no_key_and_4_changes_the_step():
+    assert "statistics_pool" not in objective_settings(
+        dict(SETTINGS), {"class_gan": {"r1": 0.1, "statistics": 1.0, "statistics_pool": 1}}, "class_gan", "v2t")
+    assert objective_settings(dict(SETTINGS), {"class_gan": {"r1": 0.1, "statistics_pool": {"v2t": 4, "t2v": 1}}},
+                              "class_gan", "v2t")["statistics_pool"] == 4
+    full, plain = one_step(statistics=1.0), one_step(statistics=1.0, statistics_pool=1)
+    for a, b in zip(weights(full.generator), weights(plain.generator)):
+        assert torch.equal(a, b)
+    pooled = one_step(statistics=1.0, statistics_pool=4)
+    assert any(not torch.equal(a, b) for a, b in zip(weights(pooled.generator), weights(full.generator)))
+
+
 def test_r1_penalty_on_a_linear_discriminator():
     real = torch.rand(2, 3, 4, 4).requires_grad_(True)
     logits = (3.0 * real).sum(dim=(1, 2, 3))  # gradient 3 at every pixel

@@ -74,7 +74,7 @@ class TranslatorTraining:
     ``input_channels`` is the generator's input: the 3 image channels plus those of a
     :class:`vtgen.core.conditioning.Conditioning`; the discriminator sees those and the 3 of the image judged.
     ``settings['objective']`` (default 'pix2pix') picks the step; 'class_gan' also reads ``r1``,
-    ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``mode_seeking_per_pair``, ``pack``, ``statistics``, ``statistics_spectrum``, ``fixed_pattern``, ``fixed_sign``, ``shared_detail``, ``class_guidance``, ``skips``,
+    ``diffaugment``, ``mode_seeking``, ``mode_seeking_pool``, ``mode_seeking_per_pair``, ``pack``, ``statistics``, ``statistics_spectrum``, ``statistics_pool``, ``fixed_pattern``, ``fixed_sign``, ``shared_detail``, ``class_guidance``, ``skips``,
     ``latent``, ``upsample``, ``padding``, ``semantic``, ``mismatch``, ``nce``, ``texture``, ``contextual`` (see :meth:`class_step`), ``d_lr_ratio`` (D's learning rate over
     G's), ``ema`` (:meth:`update_average`: the generator a run yields is the average of its weights), ``lr_decay``
     (:meth:`schedule_learning_rate`) and ``generator`` (:func:`vtgen.core.models.build_generator`: unet, the default, or resnet), and needs ``num_classes``; ``semantic`` > 0 needs ``guide``, a classifier of the target modality over the
@@ -239,7 +239,7 @@ class TranslatorTraining:
         ``mode_seeking_per_pair``.
         With ``statistics`` w > 0, G += w·:func:`statistics_loss` (G(x), y): colour, contrast and power spectrum
         of each output against those of the real image of its class in its row (``statistics_spectrum`` false: colour
-        and contrast only; summary statistics only, so
+        and contrast only; ``statistics_pool`` p > 1: contrast between p x p means; summary statistics only, so
         their pull towards the class's typical values cannot copy or average the images themselves).
         With ``fixed_pattern`` w > 0, G += w·:func:`fixed_pattern_loss` (G(x), y): the outputs' fine detail may be
         no more concentrated at fixed pixel positions over the batch than the real images' is, so that detail (the
@@ -347,7 +347,8 @@ class TranslatorTraining:
             loss_g = loss_g + guidance * F.cross_entropy(class_fake.float(), self.packed(fake, labels)[1])
         statistics, texture, contextual = (cfg.get(k, 0.0) for k in ("statistics", "texture", "contextual"))
         if statistics:
-            loss_g = loss_g + statistics * statistics_loss(fake.float(), y, cfg.get("statistics_spectrum", True))
+            loss_g = loss_g + statistics * statistics_loss(fake.float(), y, cfg.get("statistics_spectrum", True),
+                                                          cfg.get("statistics_pool", 1))
         fixed_pattern = cfg.get("fixed_pattern", 0.0)
         if fixed_pattern:
             loss_g = loss_g + fixed_pattern * fixed_pattern_loss(fake.float(), y)
@@ -486,14 +487,17 @@ def nearest_real_loss(outputs: torch.Tensor, targets: torch.Tensor, output_label
     return torch.where(torch.isfinite(nearest), nearest, torch.zeros_like(nearest)).mean()
 
 
-def statistics_loss(outputs: torch.Tensor, targets: torch.Tensor, spectrum: bool = True) -> torch.Tensor:
+def statistics_loss(outputs: torch.Tensor, targets: torch.Tensor, spectrum: bool = True, pool: int = 1) -> torch.Tensor:
     """Mean over images of |μ(o) − μ(t)|₁/3 + |σ(o) − σ(t)|₁/3 + |s(o) − s(t)|₁/K: per-channel mean μ and standard
     deviation σ over the pixels, and s the log10 radial power profile of the grey (K bins; the score stage's
     spectrum metric, :func:`vtgen.core.spectrum.rgb_log_radial_profiles`); with ``spectrum`` false the first two
-    terms only (colour and contrast, nothing that asks for fine grain). ``targets`` is data (detached)."""
+    terms only (colour and contrast, nothing that asks for fine grain). With ``pool`` p > 1, σ is taken over the
+    p x p means (``avg_pool2d``) of both images: contrast at the scale of shapes, which a lattice of dots finer
+    than p px cannot supply. ``targets`` is data (detached)."""
     targets = targets.detach().float()
     mean = (outputs.mean(dim=(2, 3)) - targets.mean(dim=(2, 3))).abs().mean()
-    spread = (outputs.std(dim=(2, 3)) - targets.std(dim=(2, 3))).abs().mean()
+    coarse_outputs, coarse_targets = (F.avg_pool2d(outputs, pool), F.avg_pool2d(targets, pool)) if pool > 1 else (outputs, targets)
+    spread = (coarse_outputs.std(dim=(2, 3)) - coarse_targets.std(dim=(2, 3))).abs().mean()
     if not spectrum:
         return mean + spread
     power = (rgb_log_radial_profiles(outputs) - rgb_log_radial_profiles(targets)).abs().mean()

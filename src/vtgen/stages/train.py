@@ -302,7 +302,7 @@ def objective_settings(settings: dict, translation: dict, objective: str, direct
     trains (the pix2pix settings stay exactly the preset's); a key given per direction ({v2t: w, t2v: w}, as
     ``nce`` is) takes ``direction``'s value. ``class_gan.iterations`` replaces the preset's iterations where
     it is not null; ``class_gan.lr_decay`` 0, ``latent_map`` false, ``inject_every_level`` false, ``select_every`` 0,
-    ``mode_seeking_per_pair`` false, ``fixed_pattern`` 0, ``fixed_sign`` 0, ``shared_detail`` 0, ``statistics_spectrum`` true, ``views`` 1, ``pack`` 1 and ``nearest`` 0 (with its ``nearest_draws``) add no key."""
+    ``mode_seeking_per_pair`` false, ``fixed_pattern`` 0, ``fixed_sign`` 0, ``shared_detail`` 0, ``statistics_spectrum`` true, ``statistics_pool`` 1, ``views`` 1, ``pack`` 1 and ``nearest`` 0 (with its ``nearest_draws``) add no key."""
     if objective != "class_gan":
         return settings
     if settings["batch_size"] < 2 or settings["batch_size"] % 2:
@@ -329,9 +329,9 @@ def objective_settings(settings: dict, translation: dict, objective: str, direct
     if not terms.get("nearest"):
         terms.pop("nearest", None)
         terms.pop("nearest_draws", None)
-    for neutral in ("views", "pack"):
+    for neutral in ("views", "pack", "statistics_pool"):
         if terms.get(neutral) == 1:
-            terms.pop(neutral)  # the centre tile alone, one image per judgement: the same
+            terms.pop(neutral)  # the centre tile alone, one image per judgement, contrast per pixel: the same
     return dict(settings, objective="class_gan", **terms)
 
 
