@@ -752,6 +752,30 @@ def test_resize_upsampling_has_no_checkerboard_on_a_constant_map():
         UNetGenerator(32, 8, 4, upsample="bilinear")
 
 
+def test_subpixel_upsampling_starts_as_nearest_upsampling_and_can_leave_it():
+    """ICNR: at initialisation each 2 x 2 block of a sub-pixel convolution's output, and so of a U-Net generator's
+    output built from them, is one value (no checkerboard); one gradient step lets the four sub-pixels differ."""
+    from vtgen.core.models import SubpixelConv, UNetGenerator, init_weights
+
+    torch.manual_seed(0)
+    up = SubpixelConv(4, 2, bias=True)
+    up.apply(init_weights)
+    x = torch.randn(1, 4, 8, 8)
+    out = up(x)
+    assert out.shape == (1, 2, 16, 16)
+    assert torch.equal(out, F.interpolate(out[..., ::2, ::2], scale_factor=2, mode="nearest"))
+    generator = UNetGenerator(32, 8, 4, upsample="subpixel")
+    image = generator(torch.randn(2, 3, 32, 32))
+    assert image.shape == (2, 3, 32, 32) and image.std() > 0
+    assert torch.equal(image, F.interpolate(image[..., ::2, ::2], scale_factor=2, mode="nearest"))
+    (up(x) - torch.randn(1, 2, 16, 16)).pow(2).mean().backward()
+    with torch.no_grad():
+        for p in up.parameters():
+            p -= 1.0 * p.grad
+    moved = up(x)
+    assert not torch.equal(moved, F.interpolate(moved[..., ::2, ::2], scale_factor=2, mode="nearest"))
+
+
 def test_resize_upsampling_keeps_a_constant_map_constant_up_to_the_border():
     """Reflection padding: no border value the generator could draw bands along (zero padding darkens or
     brightens the outermost row and column of a constant map)."""

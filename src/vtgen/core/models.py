@@ -65,7 +65,7 @@ def upsampling_conv(in_channels: int, out_channels: int, kernel: int, bias: bool
     )
 
 
-UPSAMPLINGS = ("transpose", "resize")
+UPSAMPLINGS = ("transpose", "resize", "subpixel")
 PADDINGS = ("zeros", "reflect")  # the U-Net encoder's: pix2pix's zeros, or by reflection
 
 
@@ -78,11 +78,34 @@ def resize_conv(in_channels: int, out_channels: int, bias: bool) -> nn.Sequentia
                          nn.Conv2d(in_channels, out_channels, 3, padding=1, padding_mode="reflect", bias=bias))
 
 
+class SubpixelConv(nn.Module):
+    """A 3x3 convolution to 4 x ``out_channels`` maps, then ``PixelShuffle(2)``: ``H x W`` to ``2H x 2W`` (ESPCN, Shi et
+    al. 2016). :func:`init_weights` gives it ICNR's start (Aitken et al. 2017): the four sub-pixel kernels of each output
+    channel equal, so it begins as a convolution followed by nearest-neighbour upsampling, with no checkerboard, and
+    may learn sub-pixel detail from there. Pads by replication (the bottleneck's map is 1 x 1, too small to reflect)."""
+
+    def __init__(self, in_channels: int, out_channels: int, bias: bool):
+        super().__init__()
+        self.conv = nn.Conv2d(in_channels, 4 * out_channels, 3, padding=1, padding_mode="replicate", bias=bias)
+        self.shuffle = nn.PixelShuffle(2)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.shuffle(self.conv(x))
+
+
 def init_weights(module: nn.Module) -> None:
     """DCGAN/pix2pix initialisation of one module (use with ``net.apply(init_weights)``):
-    conv and transposed-conv weights ~ N(0, 0.02), BatchNorm weights ~ N(1, 0.02), their biases 0.
+    conv and transposed-conv weights ~ N(0, 0.02), BatchNorm weights ~ N(1, 0.02), their biases 0; a
+    :class:`SubpixelConv` draws one kernel per output channel and repeats it over its four sub-pixels (ICNR).
     Other modules (e.g. ``nn.Linear``) keep PyTorch's default initialisation."""
-    if isinstance(module, (nn.Conv2d, nn.ConvTranspose2d)):
+    if isinstance(module, SubpixelConv):
+        conv = module.conv
+        with torch.no_grad():
+            kernel = torch.empty(conv.out_channels // 4, *conv.weight.shape[1:]).normal_(0.0, 0.02)
+            conv.weight.copy_(kernel.repeat_interleave(4, dim=0))
+            if conv.bias is not None:
+                conv.bias.zero_()
+    elif isinstance(module, (nn.Conv2d, nn.ConvTranspose2d)):
         nn.init.normal_(module.weight, 0.0, 0.02)
         if module.bias is not None:
             nn.init.zeros_(module.bias)
@@ -145,7 +168,8 @@ class UNetGenerator(nn.Module):
     pixel instead (N x k x S x S: noise inputs, as StyleGAN's per-pixel noise, Karras et al. 2019), so the code
     can place texture where the input is uniform. ``in_channels``
     counts the image and conditioning channels only. ``upsample`` 'resize' doubles each decoder level by
-    :func:`resize_conv` instead of a transposed convolution ('transpose', pix2pix's). ``padding`` 'reflect' pads
+    :func:`resize_conv` instead of a transposed convolution ('transpose', pix2pix's); 'subpixel' by
+    :class:`SubpixelConv`, which starts as 'resize' does and may learn sub-pixel detail. ``padding`` 'reflect' pads
     the encoder's convolutions by reflection where their input is larger than 2 px (the bottleneck's keeps zeros),
     so that no level sees a zero frame that tells it where the border is ('zeros', pix2pix's).
     ``grey_output`` draws one channel and repeats it ``out_channels`` times (:func:`grey_targets`: for targets
@@ -177,7 +201,8 @@ class UNetGenerator(nn.Module):
         if padding not in PADDINGS:
             raise ValueError(f"padding must be one of {PADDINGS}, got {padding!r}")
         self.upsample, self.padding = upsample, padding
-        up = (lambda i, o, bias: upsampling_conv(i, o, kernel, bias)) if upsample == "transpose" else resize_conv
+        up = {"transpose": lambda i, o, bias: upsampling_conv(i, o, kernel, bias), "resize": resize_conv,
+              "subpixel": SubpixelConv}[upsample]
         self.latent, self.latent_map = checked_latent(latent), bool(latent_map)
         check_kernel(kernel)
         if not 0.0 <= dropout < 1.0:

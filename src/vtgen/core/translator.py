@@ -274,7 +274,8 @@ class TranslatorTraining:
         of the input patch at its place, with no pixel loss to a partner.
         With ``pack`` 2 D judges rows 2k and 2k+1 together (:meth:`packed`: PacGAN, Lin et al. 2018), real pairs against
         output pairs of the same class, in every term above that reads D.
-        ``upsample`` 'resize' builds G's decoder from resize convolutions (no checkerboard without a pixel loss to hide it);
+        ``upsample`` 'resize' builds G's decoder from resize convolutions (no checkerboard without a pixel loss to hide it),
+        'subpixel' from sub-pixel convolutions that start as resize ones (ICNR) and may learn finer detail;
         ``padding`` 'reflect' pads G's encoder by reflection (no zero frame to draw border bands from).
         ``generator`` 'resnet' trains :class:`vtgen.core.models.ResnetGenerator` in place of the U-Net.
         ``loss_g_l1`` is |G(x) − y| against the random partner: logged, never trained on.
