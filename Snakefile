@@ -8,7 +8,7 @@ import sys
 import yaml
 from vtgen.io.params import validate_params
 from vtgen.pipeline import commit_to_dvc, outputs, reconcile, snakemake_rule, stages, write_params_records
-from vtgen.io.runlock import hold_run_lock, run_in_progress
+from vtgen.io.runlock import hold_run_lock, run_holder
 
 configfile: "params.yaml"
 
@@ -25,10 +25,17 @@ validate_params(config)
 write_params_records(config)
 # Snakemake decides by file times; vtgen's content records decide by content, as DVC does: a damaged output or
 # an input whose content changed (below dataset.path too) reruns its job, and outputs whose content matches
-# what made them (after `dvc pull`) are reused. Not in a cluster job, nor while another run holds the lock.
-if workflow.is_main_process and not run_in_progress():
-    for _line in reconcile(config):
-        print(_line, file=sys.stderr)
+# what made them (after `dvc pull`) are reused. Not in a cluster job, nor while another run holds the lock:
+# then say so, since a "Nothing to be done" would otherwise read as "the outputs are sound".
+if workflow.is_main_process:
+    _holder = run_holder()
+    if _holder:
+        print(f"vtgen: another run of this project is in progress ({_holder}): outputs are not checked for damage "
+              f"or changed inputs while it runs, and this run starts no job; run again when it has finished",
+              file=sys.stderr)
+    else:
+        for _line in reconcile(config):
+            print(_line, file=sys.stderr)
 
 report: "workflow/report/workflow.rst"
 

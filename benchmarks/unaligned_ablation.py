@@ -105,10 +105,12 @@ def class_diversity(generated: torch.Tensor, real: torch.Tensor, classes_gen: np
 
 
 def run_variant(params, pairs, splits, direction, overrides, seed, iterations, threads, root, context,
-                truncations=(1.0,)) -> list[dict]:
-    """Train one variant at one seed; one result per truncation psi of the test translations' latent codes."""
+                truncations=(1.0,), checkpoint_dir: Path | None = None) -> list[dict]:
+    """Train one variant at one seed; one result per truncation psi of the test translations' latent codes.
+    With ``checkpoint_dir`` the last step's checkpoint (generator, discriminator, optimisers) is kept there."""
     settings = dict(model_settings(params), iterations=iterations)
-    run = dict(params["translation"], seed=seed, threads=threads, checkpoint_every=10**9, resume=False)
+    run = dict(params["translation"], seed=seed, threads=threads, resume=False,
+               checkpoint_every=iterations if checkpoint_dir else 10**9)
     run["class_gan"] = dict(run["class_gan"], iterations=None)  # --iterations rules, also over a recipe's
     for key, value in overrides.items():
         if key.startswith("class_gan."):
@@ -134,7 +136,8 @@ def run_variant(params, pairs, splits, direction, overrides, seed, iterations, t
     started = time.perf_counter()
     guide = build_guide(settings, train, params["classify"], seed)
     referee = build_referee(settings, train, validation, params["classify"], seed)  # class_gan.select_every's judge
-    result = train_translator(train, settings, run, direction, "all", progress=False, conditioning=conditioning,
+    result = train_translator(train, settings, run, direction, "all", checkpoint_dir, progress=False,
+                              conditioning=conditioning,
                               guide=guide, validation=validation if referee is not None else None, referee=referee)
     seconds = time.perf_counter() - started
     if referee is not None:  # which snapshot select_every kept, and the referee's FID at each scoring
@@ -324,6 +327,8 @@ def main() -> None:
                         help="psi values the test translations' latent codes are scaled by (one row each; 1 = plain draw)")
     parser.add_argument("--sheets", type=Path, help="folder for one PNG per run, variant and seed: per class, test inputs, "
                                                    "their translations and real test targets (and the outputs as .pt)")
+    parser.add_argument("--checkpoints", type=Path, help="folder for each trained variant's last checkpoint "
+                                                        "(<direction>_<variant>_<seed>/last.pt, discriminator included)")
     args = parser.parse_args()
     if not args.variant and not args.model and not args.outputs:
         parser.error("give --variant (train and measure), --model (measure a trained model) or --outputs")
@@ -370,7 +375,8 @@ def main() -> None:
         name, overrides = parse_variant(text)
         for seed in args.seeds:
             for result in run_variant(params, pairs, splits, args.direction, overrides, seed, args.iterations,
-                                      args.threads, root, context, args.truncation):
+                                      args.threads, root, context, args.truncation,
+                                      args.checkpoints / f"{args.direction}_{name}_{seed}" if args.checkpoints else None):
                 psi = result["truncation"]
                 label = name if psi == 1.0 else f"{name}, psi {psi:g}"
                 lines.append(row(f"{label} ({result['objective']})", seed, result))

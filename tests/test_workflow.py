@@ -378,6 +378,9 @@ def test_snakemake_and_dvc_runs_exclude_each_other(tmp_path):
         smk = subprocess.run(["snakemake", "--cores", "1", "data/raw/synthetic"], cwd=project, env=ENV,
                              capture_output=True, text=True)
         assert smk.returncode != 0 and "another run of this project is in progress (dvc repro" in smk.stdout + smk.stderr
+        planned = subprocess.run(["snakemake", "-n"], cwd=project, env=ENV, capture_output=True, text=True)
+        assert "in progress (dvc repro, pid" in planned.stderr  # no job is started, yet the run says outputs went unchecked
+        assert "outputs are not checked" in planned.stderr
         stage = subprocess.run(["vtgen", "render", "--out", "data/raw/synthetic"], cwd=project, env=ENV,
                                capture_output=True, text=True)
         assert stage.returncode == 2 and "another run of this project is in progress" in stage.stderr

@@ -102,17 +102,20 @@ def hold_run_lock(tool: str, root: str | Path = ".") -> None:
     os.environ[OWNER_ENV] = str(os.getpid())
 
 
-def run_in_progress(root: str | Path = ".") -> bool:
-    """Whether another process holds ``run.lock`` now (a Snakemake or DVC run of this project is going on)."""
+def run_holder(root: str | Path = ".") -> str | None:
+    """When another process holds ``run.lock`` now (a Snakemake or DVC run of this project is going on), that run
+    as "tool, pid N, since T"; else None."""
     path = (Path(root) / LOCK_DIR / "run.lock").resolve()
     if path in _held or not path.exists():
-        return False
+        return None
     with open(path) as handle:
         try:
             fcntl.flock(handle, fcntl.LOCK_SH | fcntl.LOCK_NB)
         except BlockingIOError:
-            return True
-    return False
+            holder = _owner(path)
+            return (f"{holder.get('tool', 'unknown tool')}, pid {holder.get('pid', '?')}, "
+                    f"since {holder.get('since', '?')}")
+    return None
 
 
 def _release(path: Path) -> None:
