@@ -44,11 +44,12 @@ PERIOD_BANDS = (2.0, 2.5, 3.0, 4.0, 6.0, 8.0, 16.0, 64.0)  # band edges in pixel
 def discriminator_from_state(state: dict) -> ProjectionDiscriminator:
     """The projection discriminator a checkpoint's state dict describes (widths, kernel, depth and class count
     read from its tensors)."""
-    first = state["trunk.0.parametrizations.weight.original"]
     convs = sorted({int(key.split(".")[1]) for key in state if key.startswith("trunk.")})
+    first = state[f"trunk.{convs[0]}.parametrizations.weight.original"]
     net = ProjectionDiscriminator(state["embedding.parametrizations.weight.original"].shape[0], ndf=first.shape[0],
                                   layers=len(convs) - 1, kernel=first.shape[-1], in_channels=first.shape[1],
-                                  class_head=any(key.startswith("class_head.") for key in state))
+                                  class_head=any(key.startswith("class_head.") for key in state),
+                                  antialias=convs[0] > 0)  # a blur (no weights) before the first conv shifts the indices
     net.load_state_dict(state)
     return net.eval().requires_grad_(False)
 

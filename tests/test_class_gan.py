@@ -1176,3 +1176,54 @@ def test_with_mismatch_the_discriminator_learns_which_class_a_real_image_belongs
     (right_on, wrong_on), (right_off, wrong_off) = logits(1.0), logits(0.0)
     assert wrong_on < -3.0 and right_on > 3.0  # measured: 7.7 and -6.0
     assert (right_on - wrong_on) > (right_off - wrong_off) + 3.0  # measured: 13.7 against 8.1
+
+
+def nyquist_share(gradient: torch.Tensor) -> float:
+    """Share of the power of ``gradient`` (N x C x S x S, summed over channels) at period 2 (row or column S/2)."""
+    power = torch.fft.fft2(gradient.sum(dim=1)).abs().pow(2).mean(dim=0)
+    side = power.shape[-1]
+    return float((power[side // 2].sum() + power[:, side // 2].sum() - power[side // 2, side // 2]) / power.sum())
+
+
+def test_binomial_blur_removes_period_2_and_halves_period_4_and_keeps_a_constant():
+    from vtgen.core.models import BinomialBlur
+
+    blur = BinomialBlur(3)
+    rows = torch.arange(16).float()[:, None].expand(16, 16)
+    period2, period4 = torch.cos(torch.pi * rows), torch.cos(torch.pi * rows / 2)
+    images = torch.stack([period2, period4, torch.full((16, 16), 0.7)])[None]
+    out = blur(images)
+    assert out.shape == images.shape
+    assert out[0, 0, 2:-2].abs().max() < 1e-6  # [1, 2, 1]/4 at period 2: 1 - 2 + 1 = 0
+    assert torch.allclose(out[0, 1, 2:-2], 0.5 * period4[2:-2], atol=1e-6)  # at period 4: |1 - 2i - 1|/4
+    assert torch.allclose(out[0, 2], images[0, 2])  # reflection padding: a constant stays constant, borders too
+
+
+def test_an_antialiased_discriminator_has_the_same_weights_and_no_lattice_in_its_gradient():
+    """The blur has no parameters, so with one seed both discriminators draw the same weights; the plain one's input
+    gradient (what the generator learns from) keeps power at period 2, the anti-aliased one's almost none."""
+    from vtgen.core.models import ProjectionDiscriminator
+
+    shares = {}
+    for antialias in (False, True):
+        torch.manual_seed(0)
+        net = ProjectionDiscriminator(3, ndf=8, layers=3, kernel=4, antialias=antialias)
+        if antialias:
+            assert all(torch.equal(a, b) for a, b in zip(net.parameters(), plain.parameters()))
+        plain = net
+        images = torch.rand(4, 3, 32, 32, generator=torch.Generator().manual_seed(1)).requires_grad_(True)
+        net(images, torch.tensor([0, 1, 2, 0])).mean().backward()
+        shares[antialias] = nyquist_share(images.grad)
+    assert shares[False] > 0.02
+    assert shares[True] < shares[False] / 20
+
+
+def test_d_antialias_off_is_the_step_without_it_and_on_changes_it():
+    plain, off = one_step(), one_step(d_antialias=False)
+    for a, b in zip(weights(plain.generator) + weights(plain.discriminator),
+                    weights(off.generator) + weights(off.discriminator)):
+        assert torch.equal(a, b)
+    on = one_step(d_antialias=True)
+    assert any(not torch.equal(a, b) for a, b in zip(weights(on.generator), weights(off.generator)))
+    assert "d_antialias" not in objective_settings(dict(SETTINGS), {"class_gan": {"r1": 0.1, "d_antialias": False}},
+                                                    "class_gan", "v2t")

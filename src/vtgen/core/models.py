@@ -585,6 +585,22 @@ class PatchDiscriminator(nn.Module):
         return self.model(x)
 
 
+class BinomialBlur(nn.Module):
+    """Fixed depthwise [1, 2, 1]/4 x [1, 2, 1]/4 low-pass, reflection-padded, side kept: zero response at period 2,
+    half at period 4. Before a stride-2 conv it keeps the conv from aliasing fine patterns, and, as its own adjoint,
+    keeps the conv's gradient (a transposed conv's lattice) out of what the input is taught (anti-aliased
+    downsampling: Zhang 2019; StyleGAN2's discriminator, Karras et al. 2020). No parameters."""
+
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        taps = torch.tensor([1.0, 2.0, 1.0])
+        kernel = (taps[:, None] * taps[None, :]) / 16.0
+        self.register_buffer("kernel", kernel.expand(channels, 1, 3, 3).clone(), persistent=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(F.pad(x, (1, 1, 1, 1), mode="reflect"), self.kernel.to(x.dtype), groups=x.shape[1])
+
+
 class ProjectionDiscriminator(nn.Module):
     """Class-aware PatchGAN for class-paired data: judges an image (not a condition-image pair) *as an image
     of class c*. A PatchGAN trunk without BatchNorm (``layers`` stride-2 convs and one stride-1 conv,
@@ -592,10 +608,13 @@ class ProjectionDiscriminator(nn.Module):
     the inner product with a learned embedding of the class (the projection discriminator of Miyato &
     Koyama 2018, eq. 3, per patch), every layer spectrally normalised. No BatchNorm, so the R1 penalty's
     input gradient is per image.
+    With ``antialias`` a :class:`BinomialBlur` precedes each stride-2 conv (no parameters, so the weights and every
+    draw are those of the plain discriminator): its input gradient, which teaches the generator, then carries
+    no period-2 lattice from the strided convs.
     Input ``N x in_channels x S x S`` and ``N`` class indices; output ``N x 1 x H' x W'`` raw logits."""
 
     def __init__(self, num_classes: int, ndf: int = 64, layers: int = 3, kernel: int = 4,
-                 in_channels: int = 3, class_head: bool = False) -> None:
+                 in_channels: int = 3, class_head: bool = False, antialias: bool = False) -> None:
         super().__init__()
         check_kernel(kernel)
         if isinstance(layers, bool) or not isinstance(layers, int) or layers < 1:
@@ -607,6 +626,7 @@ class ProjectionDiscriminator(nn.Module):
         width = in_channels
         for n in range(layers):
             target = encoder_width(n, ndf)
+            blocks += [BinomialBlur(width)] if antialias else []
             blocks += [downsampling_conv(width, target, kernel, bias=True), nn.LeakyReLU(0.2)]
             width = target
         target = encoder_width(layers, ndf)

@@ -97,7 +97,8 @@ class TranslatorTraining:
                 raise ValueError(f"class_gan.pack must be 1 or 2 (the rows of a batch come in pairs of a class), got {self.pack}")
             self.discriminator = ProjectionDiscriminator(
                 num_classes, settings["ndf"], settings["patch_layers"], kernel, in_channels=3 * self.pack,
-                class_head=bool(settings.get("class_guidance", 0.0))).to(self.device).train()
+                class_head=bool(settings.get("class_guidance", 0.0)),
+                antialias=bool(settings.get("d_antialias", False))).to(self.device).train()
         else:
             self.discriminator = build_discriminator(settings["discriminator"], size, settings["ndf"], kernel,
                                                      settings["patch_layers"], input_channels + 3).to(self.device).train()
@@ -277,6 +278,8 @@ class TranslatorTraining:
         ``upsample`` 'resize' builds G's decoder from resize convolutions (no checkerboard without a pixel loss to hide it),
         'subpixel' from sub-pixel convolutions that start as resize ones (ICNR) and may learn finer detail;
         ``padding`` 'reflect' pads G's encoder by reflection (no zero frame to draw border bands from).
+        ``d_antialias`` blurs before each of D's stride-2 convs (:class:`vtgen.core.models.BinomialBlur`), so D's
+        gradient, what G learns from, carries no lattice of the strided convs.
         ``generator`` 'resnet' trains :class:`vtgen.core.models.ResnetGenerator` in place of the U-Net.
         ``loss_g_l1`` is |G(x) − y| against the random partner: logged, never trained on.
         """
