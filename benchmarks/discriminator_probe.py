@@ -14,6 +14,8 @@ test outputs o (each under its input's class), from the .pt that ``unaligned_abl
    Δ_add = mean D(y + σ·m̂) − D(y), σ = rms s_i: < 0 when D penalises the pattern on real images;
    Δ_noise: the same with a random high-pass pattern of the same norm in place of m̂ (the control).
    Δ_add near 0 while Δ_noise is clearly negative means the pattern is in D's blind spot.
+4. The lattice: how far the power at frequencies on the grid of multiples of side/8 cycles (periods 8, 4, 2 and their
+   combinations, where stride-2 layers put their lattices) stands above the rest, in D's gradient and in the outputs.
 
     PYTHONPATH=src:benchmarks python benchmarks/discriminator_probe.py --run <run folder> --direction t2v \
         --checkpoint <ck>/t2v_<variant>_0/last.pt --outputs <sheets>/<run>_t2v_<variant>_0.pt --figure probe.png
@@ -45,11 +47,13 @@ def discriminator_from_state(state: dict) -> ProjectionDiscriminator:
     """The projection discriminator a checkpoint's state dict describes (widths, kernel, depth and class count
     read from its tensors)."""
     convs = sorted({int(key.split(".")[1]) for key in state if key.startswith("trunk.")})
+    antialias = len(convs) > 2 and convs[1] - convs[0] == 3  # full-side conv, LeakyReLU, blur, first strided conv
     first = state[f"trunk.{convs[0]}.parametrizations.weight.original"]
-    net = ProjectionDiscriminator(state["embedding.parametrizations.weight.original"].shape[0], ndf=first.shape[0],
-                                  layers=len(convs) - 1, kernel=first.shape[-1], in_channels=first.shape[1],
+    strided = state[f"trunk.{convs[1 if antialias else 0]}.parametrizations.weight.original"]
+    net = ProjectionDiscriminator(state["embedding.parametrizations.weight.original"].shape[0], ndf=strided.shape[0],
+                                  layers=len(convs) - 1 - antialias, kernel=strided.shape[-1], in_channels=first.shape[1],
                                   class_head=any(key.startswith("class_head.") for key in state),
-                                  antialias=convs[0] > 0)  # a blur (no weights) before the first conv shifts the indices
+                                  antialias=antialias)
     net.load_state_dict(state)
     return net.eval().requires_grad_(False)
 
@@ -84,6 +88,19 @@ def period_map(side: int) -> np.ndarray:
     radius = np.hypot(f[:, None], f[None, :])
     with np.errstate(divide="ignore"):
         return 1.0 / radius
+
+
+def lattice_contrast(plane: np.ndarray, step: int = 8) -> float:
+    """Mean log10 of ``plane`` (a side x side power map) at the frequencies whose two indices are both multiples of
+    ``step`` (DC excluded: the lattice of periods side/step and finer that stride-2 layers make) minus its mean
+    log10 elsewhere; 0 when the lattice stands out no more than any other frequency."""
+    index = np.arange(plane.shape[0])
+    on = (index[:, None] % step == 0) & (index[None, :] % step == 0)
+    on[0, 0] = False
+    logs = np.log10(plane + 1e-12)
+    off = ~on
+    off[0, 0] = False
+    return float(logs[on].mean() - logs[off].mean())
 
 
 def band_sums(power: np.ndarray, periods: np.ndarray) -> list[float]:
@@ -159,6 +176,9 @@ def main() -> None:
     for i, (low, high) in enumerate(zip(PERIOD_BANDS[:-1], PERIOD_BANDS[1:])):
         ratio = np.log10(columns[3][i] / max(columns[2][i], 1e-12))
         print(f"| [{low:g}, {high:g}) | {columns[0][i] / totals[0]:.3f} | {columns[1][i] / totals[1]:.3f} | {ratio:+.2f} |")
+    print(f"# lattice contrast (log10 power at frequencies on the step-8 grid over elsewhere): D gradient on real images "
+          f"{lattice_contrast(grad_real):+.2f}, on outputs {lattice_contrast(grad_out):+.2f}; outputs' power "
+          f"{lattice_contrast(power_out):+.2f}, real images' {lattice_contrast(power_real):+.2f}")
     if args.figure:
         import matplotlib
         matplotlib.use("Agg")

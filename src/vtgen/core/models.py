@@ -608,9 +608,10 @@ class ProjectionDiscriminator(nn.Module):
     the inner product with a learned embedding of the class (the projection discriminator of Miyato &
     Koyama 2018, eq. 3, per patch), every layer spectrally normalised. No BatchNorm, so the R1 penalty's
     input gradient is per image.
-    With ``antialias`` a :class:`BinomialBlur` precedes each stride-2 conv (no parameters, so the weights and every
-    draw are those of the plain discriminator): its input gradient, which teaches the generator, then carries
-    no period-2 lattice from the strided convs.
+    With ``antialias`` the trunk starts with a 3x3 stride-1 conv at full side (ndf/2 maps, LeakyReLU), which can
+    see a period-2 pattern, and a :class:`BinomialBlur` precedes each stride-2 conv (StyleGAN2's discriminator,
+    Karras et al. 2020): D's input gradient, which teaches the generator, then carries no lattice of the strided
+    convs, and D is not blind to the finest one (a blur alone made it so: benchmarks/README.md, Fifty-ninth round).
     Input ``N x in_channels x S x S`` and ``N`` class indices; output ``N x 1 x H' x W'`` raw logits."""
 
     def __init__(self, num_classes: int, ndf: int = 64, layers: int = 3, kernel: int = 4,
@@ -624,6 +625,9 @@ class ProjectionDiscriminator(nn.Module):
         self.in_channels, self.num_classes = in_channels, num_classes
         blocks: list[nn.Module] = []
         width = in_channels
+        if antialias:
+            blocks += [nn.Conv2d(width, max(ndf // 2, 1), 3, padding=1, padding_mode="reflect"), nn.LeakyReLU(0.2)]
+            width = max(ndf // 2, 1)
         for n in range(layers):
             target = encoder_width(n, ndf)
             blocks += [BinomialBlur(width)] if antialias else []

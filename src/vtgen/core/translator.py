@@ -278,8 +278,9 @@ class TranslatorTraining:
         ``upsample`` 'resize' builds G's decoder from resize convolutions (no checkerboard without a pixel loss to hide it),
         'subpixel' from sub-pixel convolutions that start as resize ones (ICNR) and may learn finer detail;
         ``padding`` 'reflect' pads G's encoder by reflection (no zero frame to draw border bands from).
-        ``d_antialias`` blurs before each of D's stride-2 convs (:class:`vtgen.core.models.BinomialBlur`), so D's
-        gradient, what G learns from, carries no lattice of the strided convs.
+        ``d_antialias`` starts D with a full-side stride-1 conv and blurs before each of its stride-2 convs
+        (:class:`vtgen.core.models.BinomialBlur`), so D's gradient, what G learns from, carries no lattice of the
+        strided convs while D still sees the finest patterns.
         ``generator`` 'resnet' trains :class:`vtgen.core.models.ResnetGenerator` in place of the U-Net.
         ``loss_g_l1`` is |G(x) − y| against the random partner: logged, never trained on.
         """
