@@ -43,3 +43,24 @@ def test_spike_map_finds_a_dot_at_one_place_in_every_image_not_dots_that_move():
     assert int((spike_map(fixed) > threshold).sum()) == 1
     assert spike_map(fixed)[10 - 2, 20 - 2] > threshold  # reported at the dot's place, border of 2 px cut
     assert int((spike_map(moving) > threshold).sum()) == 0
+
+
+@pytest.mark.parametrize("antialias", [False, True])
+def test_the_probe_rebuilds_a_checkpoints_discriminator_as_trained(antialias):
+    """discriminator_probe reads the shape of the projection discriminator (width, depth, kernel, classes, whether it
+    is anti-aliased) from its state dict alone, and the rebuilt one gives the trained one's logits."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import torch
+    from discriminator_probe import discriminator_from_state, lattice_contrast
+    from vtgen.core.models import ProjectionDiscriminator
+
+    torch.manual_seed(0)
+    trained = ProjectionDiscriminator(5, ndf=8, layers=2, kernel=4, antialias=antialias).eval()
+    images, labels = torch.rand(3, 3, 32, 32), torch.tensor([0, 4, 2])
+    rebuilt = discriminator_from_state(trained.state_dict())
+    assert sum(isinstance(m, torch.nn.Conv2d) for m in rebuilt.trunk) == 3 + antialias
+    assert torch.equal(rebuilt(images, labels), trained(images, labels))
+    index = torch.arange(64)
+    on_grid = ((index[:, None] % 8 == 0) & (index[None, :] % 8 == 0)).double().numpy()
+    assert lattice_contrast(1.0 + 99.0 * on_grid) == pytest.approx(2.0)  # 100x on the grid: log10 contrast 2
+    assert lattice_contrast(torch.ones(64, 64).numpy()) == pytest.approx(0.0)
