@@ -363,6 +363,7 @@ def main() -> None:
                 args.sheets.mkdir(parents=True, exist_ok=True)
                 sheet = args.sheets / f"{root.name}_{args.direction}_model_psi{psi:g}.png"
                 write_sheet(sheet, generated, context)
+                torch.save(generated, sheet.with_suffix(".pt"))  # the test outputs, for --outputs or the probe
             print(lines[-1], flush=True)
     for path in args.outputs:
         generated = torch.load(path)
