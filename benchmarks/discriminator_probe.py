@@ -62,11 +62,15 @@ def to_unit(images: torch.Tensor) -> torch.Tensor:
     return images.float() / 127.5 - 1.0
 
 
+def mean_power(planes: torch.Tensor) -> np.ndarray:
+    """Mean over the N planes (N x S x S) of |FFT2(plane)|², S x S (numpy order)."""
+    return torch.fft.fft2(planes).abs().pow(2).mean(dim=0).numpy()
+
+
 def grey_power(images: torch.Tensor) -> np.ndarray:
-    """Mean over images of |FFT(grey image − its mean)|² / side², full side x side plane (numpy order)."""
+    """:func:`mean_power` of each image's grey minus its mean (DC removed)."""
     grey = images.mean(dim=1)
-    grey = grey - grey.mean(dim=(1, 2), keepdim=True)
-    return (torch.fft.fft2(grey).abs().pow(2).mean(dim=0) / grey.shape[-1] ** 2).numpy()
+    return mean_power(grey - grey.mean(dim=(1, 2), keepdim=True))
 
 
 def mean_logit(net, images: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
@@ -75,11 +79,11 @@ def mean_logit(net, images: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
 
 
 def gradient_power(net, images: torch.Tensor, labels: torch.Tensor) -> np.ndarray:
-    """Mean over images of |FFT(Σ_channels ∇_x mean-patch-logit)|², side x side (numpy order)."""
+    """:func:`mean_power` of Σ_channels ∇_x mean-patch-logit over the images."""
     x = images.clone().requires_grad_(True)
     with torch.enable_grad():
         mean_logit(net, x, labels).sum().backward()
-    return torch.fft.fft2(x.grad.sum(dim=1)).abs().pow(2).mean(dim=0).numpy()
+    return mean_power(x.grad.sum(dim=1))
 
 
 def period_map(side: int) -> np.ndarray:
