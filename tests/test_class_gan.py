@@ -750,7 +750,29 @@ def test_resize_upsampling_has_no_checkerboard_on_a_constant_map():
     assert torch.equal(stamped[..., :-2, :-2], stamped[..., 2:, 2:])  # period 2
     assert UNetGenerator(32, 8, 4, upsample="resize")(torch.zeros(2, 3, 32, 32)).shape == (2, 3, 32, 32)
     with pytest.raises(ValueError, match="upsample must be"):
-        UNetGenerator(32, 8, 4, upsample="bilinear")
+        UNetGenerator(32, 8, 4, upsample="bicubic")
+
+
+def test_bilinear_upsampling_is_resize_then_blur_and_leaves_no_blocks():
+    """'bilinear' is nearest-neighbour 2x followed by the [1, 2, 1] binomial blur, border included (both replicate the
+    edge), so a lone bright input pixel becomes a tent, not a 2 x 2 block; a U-Net built from it maps (32 px) images."""
+    from vtgen.core.models import BinomialBlur, UNetGenerator, bilinear_conv, resize_conv
+
+    torch.manual_seed(0)
+    x = torch.randn(2, 4, 8, 8)
+    bilinear, resize = bilinear_conv(4, 2, bias=False), resize_conv(4, 2, bias=False)
+    resize[1].load_state_dict(bilinear[1].state_dict())
+    with torch.no_grad():
+        blurred_resize = resize[1](BinomialBlur(4)(resize[0](x)))
+        assert torch.allclose(bilinear(x), blurred_resize, atol=1e-6)
+        impulse = torch.zeros(1, 1, 4, 4)
+        impulse[..., 1, 1] = 1.0
+        tent, block = bilinear[0](impulse)[0, 0], resize[0](impulse)[0, 0]
+    taps = torch.tensor([0.0, 0.25, 0.75, 0.75, 0.25, 0.0, 0.0, 0.0])
+    assert torch.allclose(tent, taps[:, None] * taps[None, :])
+    assert torch.equal(block[2:4, 2:4], torch.ones(2, 2)) and block.sum() == 4
+    generator = UNetGenerator(32, 8, 4, upsample="bilinear")
+    assert generator(torch.zeros(2, 3, 32, 32)).shape == (2, 3, 32, 32)
 
 
 def test_subpixel_upsampling_starts_as_nearest_upsampling_and_can_leave_it():

@@ -65,7 +65,7 @@ def upsampling_conv(in_channels: int, out_channels: int, kernel: int, bias: bool
     )
 
 
-UPSAMPLINGS = ("transpose", "resize", "subpixel")
+UPSAMPLINGS = ("transpose", "resize", "bilinear", "subpixel")
 PADDINGS = ("zeros", "reflect")  # the U-Net encoder's: pix2pix's zeros, or by reflection
 
 
@@ -75,6 +75,15 @@ def resize_conv(in_channels: int, out_channels: int, bias: bool) -> nn.Sequentia
     The convolution pads by reflection: zero padding gave the generator a border it drew saturated bands
     along (benchmarks/README.md, Tenth and Eleventh rounds)."""
     return nn.Sequential(nn.Upsample(scale_factor=2, mode="nearest"),
+                         nn.Conv2d(in_channels, out_channels, 3, padding=1, padding_mode="reflect", bias=bias))
+
+
+def bilinear_conv(in_channels: int, out_channels: int, bias: bool) -> nn.Sequential:
+    """Bilinear 2x upsampling (half-pixel centres), then a 3x3 convolution padded by reflection: ``H x W`` to
+    ``2H x 2W``. The bilinear step equals nearest-neighbour 2x followed by :class:`BinomialBlur` ([1, 3, 3, 1]/4 =
+    [1, 1] * [1, 2, 1]/4 per axis), so unlike :func:`resize_conv` it leaves no 2 x 2 blocks whose edges, stacked over
+    the decoder's levels, line up along the rows and columns (the plaid of benchmarks/README.md, Fifty-ninth round)."""
+    return nn.Sequential(nn.Upsample(scale_factor=2, mode="bilinear", align_corners=False),
                          nn.Conv2d(in_channels, out_channels, 3, padding=1, padding_mode="reflect", bias=bias))
 
 
@@ -168,7 +177,8 @@ class UNetGenerator(nn.Module):
     pixel instead (N x k x S x S: noise inputs, as StyleGAN's per-pixel noise, Karras et al. 2019), so the code
     can place texture where the input is uniform. ``in_channels``
     counts the image and conditioning channels only. ``upsample`` 'resize' doubles each decoder level by
-    :func:`resize_conv` instead of a transposed convolution ('transpose', pix2pix's); 'subpixel' by
+    :func:`resize_conv` instead of a transposed convolution ('transpose', pix2pix's); 'bilinear' by
+    :func:`bilinear_conv` (resize with a blur after it); 'subpixel' by
     :class:`SubpixelConv`, which starts as 'resize' does and may learn sub-pixel detail. ``padding`` 'reflect' pads
     the encoder's convolutions by reflection where their input is larger than 2 px (the bottleneck's keeps zeros),
     so that no level sees a zero frame that tells it where the border is ('zeros', pix2pix's).
@@ -202,7 +212,7 @@ class UNetGenerator(nn.Module):
             raise ValueError(f"padding must be one of {PADDINGS}, got {padding!r}")
         self.upsample, self.padding = upsample, padding
         up = {"transpose": lambda i, o, bias: upsampling_conv(i, o, kernel, bias), "resize": resize_conv,
-              "subpixel": SubpixelConv}[upsample]
+              "bilinear": bilinear_conv, "subpixel": SubpixelConv}[upsample]
         self.latent, self.latent_map = checked_latent(latent), bool(latent_map)
         check_kernel(kernel)
         if not 0.0 <= dropout < 1.0:

@@ -276,6 +276,7 @@ class TranslatorTraining:
         With ``pack`` 2 D judges rows 2k and 2k+1 together (:meth:`packed`: PacGAN, Lin et al. 2018), real pairs against
         output pairs of the same class, in every term above that reads D.
         ``upsample`` 'resize' builds G's decoder from resize convolutions (no checkerboard without a pixel loss to hide it),
+        'bilinear' from bilinear ones (resize, then a [1, 2, 1] blur: no 2 x 2 blocks lined up along rows and columns),
         'subpixel' from sub-pixel convolutions that start as resize ones (ICNR) and may learn finer detail;
         ``padding`` 'reflect' pads G's encoder by reflection (no zero frame to draw border bands from).
         ``d_antialias`` starts D with a full-side stride-1 conv and blurs before each of its stride-2 convs
