@@ -49,6 +49,14 @@ def test_code_dependencies_are_the_modules_each_stage_imports():
             assert (REPO / path).exists(), (stage.name, path)
 
 
+def test_a_project_whose_vtgen_runs_from_elsewhere_gets_a_clear_error(tmp_path):
+    """``vtgen workflow`` in a project while the vtgen that runs is installed outside it: a message naming both
+    places and the remedy, not pathlib's bare 'is not in the subpath of'."""
+    with pytest.raises(ValueError, match=r"outside this project .*PYTHONPATH=src") as error:
+        write_dvc_files(yaml.safe_load((REPO / "params.yaml").read_text()), tmp_path)
+    assert str(tmp_path.resolve()) in str(error.value) and str(REPO / "src" / "vtgen") in str(error.value)
+
+
 def test_render_exists_only_for_the_synthetic_dataset(default_params):
     generic = copy.deepcopy(default_params)
     generic["dataset"] = {"source": "generic", "path": "my_data"}
