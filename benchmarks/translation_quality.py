@@ -49,12 +49,21 @@ def parse_variant(text: str) -> tuple[str, dict]:
     return name, overrides
 
 
+def target_of(key: str, run: dict, settings: dict) -> dict:
+    """The dict a variant's ``key`` sets: ``run`` (the translation section) or ``settings`` (the preset's); raise
+    ValueError for a key that is in neither, which would otherwise change nothing and leave the variant the default."""
+    if key in run or key in settings:
+        return run if key in run else settings
+    raise ValueError(f"variant key {key!r} is neither a translation key nor a preset key, so it would change nothing; "
+                     f"translation keys: {', '.join(sorted(run))}; preset keys: {', '.join(sorted(settings))}")
+
+
 def run_variant(params: dict, pairs, splits, direction: str, overrides: dict, seed: int, iterations: int,
                 threads: int, encoder, encoder_record, root: Path = Path(".")) -> dict:
     settings = dict(model_settings(params), iterations=iterations)
     run = dict(params["translation"], seed=seed, threads=threads, checkpoint_every=10**9, resume=False)
     for key, value in overrides.items():
-        (run if key in run else settings)[key] = value
+        target_of(key, run, settings)[key] = value
     size = settings["size"]
     train = load_pair_data(pairs, splits, direction, "all", size, root)
     test = load_pair_data(pairs, splits, direction, "all", size, root, split="test")

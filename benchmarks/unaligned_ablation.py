@@ -76,7 +76,7 @@ from vtgen.stages.generate import translate
 from vtgen.stages.score import KID_SUBSETS, kid_subset_size, mean_over_classes
 from vtgen.stages.train import (build_conditioning, build_guide, build_referee, load_pair_data, objective_settings,
                                 output_settings, pairs_in, resolve_conditioning, resolve_objective, train_translator, with_frame_views)
-from translation_quality import parse_variant  # the same name:key=value;... variants (benchmarks/ is on sys.path)
+from translation_quality import parse_variant, target_of  # the same name:key=value;... variants (benchmarks/ is on sys.path)
 
 def real_classifier(splits, modality: str, params: dict, root: Path, classes: list[str], seed: int = 0):
     """The classify stage's real-only classifier of ``modality`` (trained with ``seed``) and its test accuracy with n."""
@@ -114,13 +114,15 @@ def run_variant(params, pairs, splits, direction, overrides, seed, iterations, t
     run["class_gan"] = dict(run["class_gan"], iterations=None)  # --iterations rules, also over a recipe's
     for key, value in overrides.items():
         if key.startswith("class_gan."):
-            run["class_gan"][key.split(".", 1)[1]] = value
+            inner = key.split(".", 1)[1]
+            if inner not in run["class_gan"]:
+                raise ValueError(f"variant key {key!r}: translation.class_gan has no key {inner!r}, so it would change "
+                                 f"nothing; its keys: {', '.join(sorted(run['class_gan']))}")
+            run["class_gan"][inner] = value
         elif key == "conditioning":
             run["conditioning"] = dict(run["conditioning"], **{direction: value})
-        elif key in run:
-            run[key] = value
         else:
-            settings[key] = value
+            target_of(key, run, settings)[key] = value
     size = settings["size"]
     train = load_pair_data(pairs, splits, direction, "all", size, root)
     validation = (load_pair_data(pairs, splits, direction, "all", size, root, split="val")

@@ -4,8 +4,10 @@ or a typo until the next person needs its table."""
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -64,3 +66,14 @@ def test_the_probe_rebuilds_a_checkpoints_discriminator_as_trained(antialias):
     on_grid = ((index[:, None] % 8 == 0) & (index[None, :] % 8 == 0)).double().numpy()
     assert lattice_contrast(1.0 + 99.0 * on_grid) == pytest.approx(2.0)  # 100x on the grid: log10 contrast 2
     assert lattice_contrast(torch.ones(64, 64).numpy()) == pytest.approx(0.0)
+
+
+@pytest.mark.parametrize("key", ["conditioning.t2v", "class_gan.d_antialiass", "itrations"])
+def test_a_variant_key_that_would_change_nothing_is_refused(default_params, key):
+    """A misspelt or misplaced variant key used to fall into the preset's settings unread, so the 'variant' trained
+    the default (a `conditioning.t2v=none` run gave the plain run's numbers to the digit)."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from unaligned_ablation import run_variant
+
+    with pytest.raises(ValueError, match=re.escape(repr(key.split(".", 1)[-1] if key.startswith("class_gan.") else key))):
+        run_variant(default_params, None, None, "t2v", {key: "none"}, 0, 10, 1, Path("."), None)
