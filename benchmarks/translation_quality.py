@@ -33,7 +33,7 @@ from vtgen.core.distribution import spectrum_distance
 from vtgen.core.domain import DIRECTIONS
 from vtgen.core.metrics import colour_ssim
 from vtgen.io.classifiers import load_classifier
-from vtgen.io.params import model_settings, validate_params
+from vtgen.io.params import SCHEMA_PATH, model_settings, validate_params
 from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
 from vtgen.stages.generate import translate
 from vtgen.stages.score import reference_candidates
@@ -49,13 +49,23 @@ def parse_variant(text: str) -> tuple[str, dict]:
     return name, overrides
 
 
-def target_of(key: str, run: dict, settings: dict) -> dict:
-    """The dict a variant's ``key`` sets: ``run`` (the translation section) or ``settings`` (the preset's); raise
+def schema_keys(*section: str) -> set[str]:
+    """The keys params.schema.yaml allows in ``section`` (e.g. 'translation', 'class_gan'), optional ones included:
+    a run folder's params.yaml written before an optional key existed lacks it."""
+    node = yaml.safe_load(SCHEMA_PATH.read_text())
+    for name in section:
+        node = node["properties"][name]
+    return set(node["properties"])
+
+
+def target_of(key: str, run: dict, settings: dict, section: tuple[str, ...] = ("translation",)) -> dict:
+    """The dict a variant's ``key`` sets: ``run`` (the params ``section``) or ``settings`` (the preset's); raise
     ValueError for a key that is in neither, which would otherwise change nothing and leave the variant the default."""
-    if key in run or key in settings:
-        return run if key in run else settings
-    raise ValueError(f"variant key {key!r} is neither a translation key nor a preset key, so it would change nothing; "
-                     f"translation keys: {', '.join(sorted(run))}; preset keys: {', '.join(sorted(settings))}")
+    run_keys = set(run) | schema_keys(*section)
+    if key in run_keys or key in settings:
+        return run if key in run_keys else settings
+    raise ValueError(f"variant key {key!r} is neither a {'.'.join(section)} key nor a preset key, so it would change "
+                     f"nothing; {'.'.join(section)} keys: {', '.join(sorted(run_keys))}; preset keys: {', '.join(sorted(settings))}")
 
 
 def run_variant(params: dict, pairs, splits, direction: str, overrides: dict, seed: int, iterations: int,

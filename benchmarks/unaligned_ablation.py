@@ -115,10 +115,7 @@ def run_variant(params, pairs, splits, direction, overrides, seed, iterations, t
     for key, value in overrides.items():
         if key.startswith("class_gan."):
             inner = key.split(".", 1)[1]
-            if inner not in run["class_gan"]:
-                raise ValueError(f"variant key {key!r}: translation.class_gan has no key {inner!r}, so it would change "
-                                 f"nothing; its keys: {', '.join(sorted(run['class_gan']))}")
-            run["class_gan"][inner] = value
+            target_of(inner, run["class_gan"], {}, ("translation", "class_gan"))[inner] = value
         elif key == "conditioning":
             run["conditioning"] = dict(run["conditioning"], **{direction: value})
         else:
