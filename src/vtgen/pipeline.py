@@ -177,12 +177,11 @@ def stages(params: dict, pipeline: str = "main") -> list[Stage]:
 def code_deps(stage: Stage, root: Path | None = None) -> list[str]:
     """``stage``'s code files as paths relative to the project root (``src/vtgen/...``), plus what it reads."""
     root = (root or PACKAGE_ROOT.parents[1]).resolve()
-    package = PACKAGE_ROOT.resolve()
-    if not package.is_relative_to(root):
-        raise ValueError(f"the vtgen that runs here is {package}, outside this project ({root}), so the workflow cannot "
+    if not PACKAGE_ROOT.is_relative_to(root):  # PACKAGE_ROOT is resolved, and so is every code file under it
+        raise ValueError(f"the vtgen that runs here is {PACKAGE_ROOT}, outside this project ({root}), so the workflow cannot "
                          f"name the code each stage depends on as paths inside the project: run it with this project's "
                          f"vtgen (`pip install -e .` here, or PYTHONPATH=src python -m vtgen ...)")
-    files = [path.resolve().relative_to(root).as_posix() for path in code_files(stage.module)]
+    files = [path.relative_to(root).as_posix() for path in code_files(stage.module)]
     return files + list(stage.reads)
 
 
