@@ -163,6 +163,25 @@ def check_batchnorm_values(batch: int, map_shapes: list[tuple[int, int]], networ
             )
 
 
+class NoiseInjection(nn.Module):
+    """x + s_c * n over an N x C x H x W map: one N(0, 1) noise map n per image, shared by the channels, scaled per
+    channel by a learned strength s (StyleGAN's noise inputs, Karras et al. 2019, eq. B), which starts at 0 so the
+    layer starts as the identity. Training draws n from torch's global generator; eval mode uses a fixed draw
+    (seed 0 at each call), so that translating the same batch twice gives the same images."""
+
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        self.strength = nn.Parameter(torch.zeros(channels))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        shape = (x.shape[0], 1, x.shape[2], x.shape[3])
+        if self.training:
+            noise = torch.randn(shape, device=x.device, dtype=x.dtype)
+        else:
+            noise = torch.randn(shape, generator=torch.Generator().manual_seed(0)).to(x.device, x.dtype)
+        return x + self.strength.view(1, -1, 1, 1).to(x.dtype) * noise
+
+
 class UNetGenerator(nn.Module):
     """U-Net mapping an ``N x in_channels x size x size`` image to ``N x out_channels x size x size`` in [-1, 1].
 
@@ -187,6 +206,8 @@ class UNetGenerator(nn.Module):
     ``inject`` n > 0 feeds the input's last n channels (the condition's class maps or reference, then z; see
     ``in_channels``) again into every encoder level, area-averaged to that level's side and concatenated to its
     input (BicycleGAN's "add to all", Zhu et al. 2017), so the class and the code cannot fade in the first levels.
+    ``decoder_noise`` n > 0 adds a :class:`NoiseInjection` after the upsampling of each of the n finest decoder levels
+    below the output (sides S/2, S/4, ...): per-pixel noise that can place fine detail, not layout (StyleGAN).
     """
 
     def __init__(
@@ -204,6 +225,7 @@ class UNetGenerator(nn.Module):
         latent_map: bool = False,
         grey_output: bool = False,
         inject: int = 0,
+        decoder_noise: int = 0,
     ) -> None:
         super().__init__()
         if upsample not in UPSAMPLINGS:
@@ -228,6 +250,10 @@ class UNetGenerator(nn.Module):
         if isinstance(inject, bool) or not isinstance(inject, int) or not 0 <= inject <= in_channels + latent:
             raise ValueError(f"inject must be an integer in [0, {in_channels + latent}] (the input's channels), got {inject!r}")
         self.inject = inject
+        if isinstance(decoder_noise, bool) or not isinstance(decoder_noise, int) or not 0 <= decoder_noise < self.depth:
+            raise ValueError(f"decoder_noise must be an integer in [0, {self.depth - 1}] (the decoder levels below the "
+                             f"output), got {decoder_noise!r}")
+        self.decoder_noise = decoder_noise
         self.ngf = ngf
         depth = self.depth
         widths = [encoder_width(level, ngf) for level in range(depth)]
@@ -255,11 +281,10 @@ class UNetGenerator(nn.Module):
                 block = nn.Sequential(up(source, 1 if self.grey_output else out_channels, bias=True), nn.Tanh())
             else:
                 target = widths[depth - 2 - level]
-                layers: list[nn.Module] = [
-                    up(source, target, bias=False),
-                    nn.BatchNorm2d(target),
-                    nn.ReLU(),
-                ]
+                layers: list[nn.Module] = [up(source, target, bias=False)]
+                if level >= depth - 1 - decoder_noise:
+                    layers.append(NoiseInjection(target))
+                layers += [nn.BatchNorm2d(target), nn.ReLU()]
                 if level < self.dropout_levels:
                     layers.append(nn.Dropout(dropout))
                 block = nn.Sequential(*layers)
@@ -452,9 +477,9 @@ def grey_targets(images: torch.Tensor) -> bool:
 
 def build_generator(settings: dict, in_channels: int = 3) -> nn.Module:
     """The generator ``settings`` name (``generator``: 'unet', the default, or 'resnet'), from its size, ngf,
-    latent, latent_map and (the U-Net's) kernel, skips, upsample, padding and inject_every_level keys. The ResNet always resizes and reflects, so it
-    ignores ``upsample`` and ``padding``; it has no skip connections, so ``skips`` other than all (None) is refused, and so is
-    ``inject_every_level``. Raises ValueError for
+    latent, latent_map and (the U-Net's) kernel, skips, upsample, padding, inject_every_level and decoder_noise keys. The ResNet
+    always resizes and reflects, so it ignores ``upsample`` and ``padding``; it has no skip connections, so ``skips`` other than
+    all (None) is refused, and so are ``inject_every_level`` and ``decoder_noise``. Raises ValueError for
     that and for an unknown kind. ``grey_output`` (absent: False) makes either draw one channel, repeated."""
     kind = settings.get("generator", "unet")
     latent, latent_map = settings.get("latent", 0), settings.get("latent_map", False)
@@ -465,10 +490,13 @@ def build_generator(settings: dict, in_channels: int = 3) -> nn.Module:
         return UNetGenerator(settings["size"], settings["ngf"], settings["kernel"], in_channels=in_channels,
                              skips=settings.get("skips"), latent=latent,
                              upsample=settings.get("upsample", "transpose"), padding=settings.get("padding", "zeros"),
-                             latent_map=latent_map, grey_output=grey, inject=inject)
+                             latent_map=latent_map, grey_output=grey, inject=inject,
+                             decoder_noise=settings.get("decoder_noise", 0))
     if settings.get("inject_every_level"):
         raise ValueError("class_gan.inject_every_level is a U-Net setting: set it to false with class_gan.generator: "
                          f"{kind}")
+    if settings.get("decoder_noise"):
+        raise ValueError(f"class_gan.decoder_noise is a U-Net setting: set it to 0 with class_gan.generator: {kind}")
     if kind == "resnet":
         if settings.get("skips") is not None:
             raise ValueError(f"class_gan.skips ({settings['skips']}) is a U-Net setting: set it to 'all' with "
