@@ -32,7 +32,7 @@ def test_noise_injection_starts_as_the_identity_and_adds_one_map_per_image_scale
     assert 0.7 < added[:, 1].std().item() < 1.3
 
 
-def test_levels_get_noise_finest_first_and_an_out_of_range_count_is_refused():
+def test_levels_get_noise_finest_first_a_larger_count_means_every_level_and_a_negative_one_is_refused():
     generator = UNetGenerator(32, 8, 4, decoder_noise=2)  # depth 5: decoder levels 0-3 below the output
     sides = []
     for level, block in enumerate(generator.decoder):
@@ -40,8 +40,9 @@ def test_levels_get_noise_finest_first_and_an_out_of_range_count_is_refused():
             sides.append(2 ** (level + 1))
     assert sides == [8, 16]
     assert noise_layers(UNetGenerator(32, 8, 4)) == []
-    with pytest.raises(ValueError, match=r"decoder_noise must be an integer in \[0, 4\]"):
-        UNetGenerator(32, 8, 4, decoder_noise=5)
+    assert len(noise_layers(UNetGenerator(16, 8, 4, decoder_noise=5))) == 3  # a 16 px model has three levels below its output
+    with pytest.raises(ValueError, match=r"decoder_noise must be an integer >= 0"):
+        UNetGenerator(32, 8, 4, decoder_noise=-1)
 
 
 def test_at_zero_strength_the_outputs_are_those_without_the_layers():
@@ -83,7 +84,9 @@ def test_with_strength_training_draws_vary_the_output_and_eval_mode_repeats_itse
 def test_zero_adds_no_settings_key_a_value_may_be_given_per_direction_and_resnet_refuses(default_params):
     from vtgen.io.params import ParamsError, validate_params
     params = copy.deepcopy(default_params)
-    assert params["translation"]["class_gan"]["decoder_noise"] == 0
+    assert params["translation"]["class_gan"]["decoder_noise"] == {"v2t": 0, "t2v": 3}  # T2V's since the Sixty-first round
+    assert "decoder_noise" not in objective_settings(dict(SETTINGS), params["translation"], "class_gan", "v2t")
+    params["translation"]["class_gan"]["decoder_noise"] = 0
     plain = objective_settings(dict(SETTINGS), params["translation"], "class_gan", "t2v")
     assert "decoder_noise" not in plain  # the default's checkpoint keys stay those of the code before the switch
     assert noise_layers(build_generator(dict(plain, size=32, ngf=8))) == []

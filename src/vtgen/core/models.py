@@ -207,7 +207,7 @@ class UNetGenerator(nn.Module):
     ``in_channels``) again into every encoder level, area-averaged to that level's side and concatenated to its
     input (BicycleGAN's "add to all", Zhu et al. 2017), so the class and the code cannot fade in the first levels.
     ``decoder_noise`` n > 0 adds a :class:`NoiseInjection` after the upsampling of each of the n finest decoder levels
-    below the output (sides S/2, S/4, ...): per-pixel noise that can place fine detail, not layout (StyleGAN).
+    below the output (sides S/2, S/4, ...; all ``depth - 1`` of them where n is larger): per-pixel noise that can place fine detail, not layout (StyleGAN).
     """
 
     def __init__(
@@ -250,10 +250,9 @@ class UNetGenerator(nn.Module):
         if isinstance(inject, bool) or not isinstance(inject, int) or not 0 <= inject <= in_channels + latent:
             raise ValueError(f"inject must be an integer in [0, {in_channels + latent}] (the input's channels), got {inject!r}")
         self.inject = inject
-        if isinstance(decoder_noise, bool) or not isinstance(decoder_noise, int) or not 0 <= decoder_noise < self.depth:
-            raise ValueError(f"decoder_noise must be an integer in [0, {self.depth - 1}] (the decoder levels below the "
-                             f"output), got {decoder_noise!r}")
-        self.decoder_noise = decoder_noise
+        if isinstance(decoder_noise, bool) or not isinstance(decoder_noise, int) or decoder_noise < 0:
+            raise ValueError(f"decoder_noise must be an integer >= 0, got {decoder_noise!r}")
+        self.decoder_noise = min(decoder_noise, self.depth - 1)  # at most every decoder level below the output
         self.ngf = ngf
         depth = self.depth
         widths = [encoder_width(level, ngf) for level in range(depth)]
@@ -282,7 +281,7 @@ class UNetGenerator(nn.Module):
             else:
                 target = widths[depth - 2 - level]
                 layers: list[nn.Module] = [up(source, target, bias=False)]
-                if level >= depth - 1 - decoder_noise:
+                if level >= depth - 1 - self.decoder_noise:
                     layers.append(NoiseInjection(target))
                 layers += [nn.BatchNorm2d(target), nn.ReLU()]
                 if level < self.dropout_levels:
