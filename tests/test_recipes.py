@@ -108,21 +108,27 @@ def test_a_recipe_sets_each_of_its_keys_and_nothing_else(default_params, recipe)
 
 def test_the_quick_recipe_restores_the_short_class_pair_settings(default_params):
     """By default a class-pair V2T reads the photo's class with the features and trains 6,000 steps with a
-    teaching discriminator (R1 1), and T2V trains 3,000; `quick` gives the earlier, shorter settings back (the preset's
+    teaching discriminator (R1 1), and T2V trains 3,000 (R1 1 too, with decoder noise); `quick` gives the earlier, shorter settings back (the preset's
     1,500 steps for both)."""
     translation = default_params["translation"]
     assert translation["conditioning"] == {"v2t": "auto", "t2v": "class"}
     assert translation["inferred_reader"] == "features"
-    assert translation["class_gan"]["r1"] == {"v2t": 1, "t2v": 240}
+    assert translation["class_gan"]["r1"] == {"v2t": 1, "t2v": 1}
     assert translation["class_gan"]["iterations"] == {"v2t": 6000, "t2v": 3000}
     quick = with_recipe(choose(default_params, "quick"))["translation"]
     assert quick["conditioning"] == {"v2t": "none", "t2v": "class"}
     assert quick["class_gan"]["r1"] == 240 and quick["class_gan"]["iterations"] is None
+    # and T2V's generator and discriminator of then: transposed convs, no noise maps, pix2pix's D
+    assert (quick["class_gan"]["upsample"], quick["class_gan"]["decoder_noise"], quick["class_gan"]["d_antialias"]) == (
+        "transpose", 0, False)
 
 
 def test_the_fabric_recipe_keeps_the_reader_it_was_measured_with(default_params):
     applied = with_recipe(choose(default_params, "fabric"))["translation"]
     assert applied["inferred_reader"] == "network" and applied["conditioning"] == {"v2t": "inferred", "t2v": "inferred"}
+    # and its T2V: resize decoder, no noise maps, pix2pix's D (the object default's, since the Sixty-first round, was not measured there)
+    assert (applied["class_gan"]["upsample"], applied["class_gan"]["decoder_noise"], applied["class_gan"]["d_antialias"]) == (
+        "resize", 0, False)
 
 
 @pytest.mark.parametrize("edit, message", [
