@@ -118,7 +118,7 @@ def test_the_quick_recipe_restores_the_short_class_pair_settings(default_params)
     quick = with_recipe(choose(default_params, "quick"))["translation"]
     assert quick["conditioning"] == {"v2t": "none", "t2v": "class"}
     assert quick["class_gan"]["r1"] == 240 and quick["class_gan"]["iterations"] is None
-    # and T2V's generator and discriminator of then: transposed convs, no noise maps, pix2pix's D
+    # and T2V's generator and discriminator of then: transposed convs, no noise maps, no anti-aliasing in D
     assert (quick["class_gan"]["upsample"], quick["class_gan"]["decoder_noise"], quick["class_gan"]["d_antialias"]) == (
         "transpose", 0, False)
 
@@ -126,7 +126,7 @@ def test_the_quick_recipe_restores_the_short_class_pair_settings(default_params)
 def test_the_fabric_recipe_keeps_the_reader_it_was_measured_with(default_params):
     applied = with_recipe(choose(default_params, "fabric"))["translation"]
     assert applied["inferred_reader"] == "network" and applied["conditioning"] == {"v2t": "inferred", "t2v": "inferred"}
-    # and its T2V: resize decoder, no noise maps, pix2pix's D (the object default's, since the Sixty-first round, was not measured there)
+    # and its T2V: resize decoder, no noise maps, no anti-aliasing in D (the object default's, since the Sixty-first round, was not measured there)
     assert (applied["class_gan"]["upsample"], applied["class_gan"]["decoder_noise"], applied["class_gan"]["d_antialias"]) == (
         "resize", 0, False)
 

@@ -165,9 +165,9 @@ def check_batchnorm_values(batch: int, map_shapes: list[tuple[int, int]], networ
 
 class NoiseInjection(nn.Module):
     """x + s_c * n over an N x C x H x W map: one N(0, 1) noise map n per image, shared by the channels, scaled per
-    channel by a learned strength s (StyleGAN's noise inputs, Karras et al. 2019, eq. B), which starts at 0 so the
-    layer starts as the identity. Training draws n from torch's global generator; eval mode uses a fixed draw
-    (seed 0 at each call), so that translating the same batch twice gives the same images."""
+    channel by a learned strength s (StyleGAN's noise inputs and their per-channel factors B, Karras et al. 2019),
+    which starts at 0 so the layer starts as the identity. Training draws n from torch's global generator; eval mode
+    uses a fixed draw (seed 0 at each call), so that translating the same batch twice gives the same images."""
 
     def __init__(self, channels: int) -> None:
         super().__init__()
@@ -207,7 +207,8 @@ class UNetGenerator(nn.Module):
     ``in_channels``) again into every encoder level, area-averaged to that level's side and concatenated to its
     input (BicycleGAN's "add to all", Zhu et al. 2017), so the class and the code cannot fade in the first levels.
     ``decoder_noise`` n > 0 adds a :class:`NoiseInjection` after the upsampling of each of the n finest decoder levels
-    below the output (sides S/2, S/4, ...; all ``depth - 1`` of them where n is larger): per-pixel noise that can place fine detail, not layout (StyleGAN).
+    below the output (sides S/2, S/4, ...; all ``depth - 1`` of them where n is larger): per-pixel noise that can
+    place fine detail, not layout (StyleGAN).
     """
 
     def __init__(
