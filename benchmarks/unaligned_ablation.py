@@ -104,6 +104,13 @@ def class_diversity(generated: torch.Tensor, real: torch.Tensor, classes_gen: np
     return median_interval(ratios)
 
 
+def read_rate(conditioning, inputs: torch.Tensor, input_classes) -> float:
+    """Share of uint8 ``inputs`` whose class an ``inferred`` conditioning's reader reads as ``input_classes``
+    (their class names): how often the generator is told the class of what it translates."""
+    told = conditioning.probabilities(inputs.float() / 127.5 - 1.0).argmax(dim=1)
+    return float((told == conditioning.labels(list(input_classes))).float().mean())
+
+
 def run_variant(params, pairs, splits, direction, overrides, seed, iterations, threads, root, context,
                 truncations=(1.0,), checkpoint_dir: Path | None = None) -> list[dict]:
     """Train one variant at one seed; one result per truncation psi of the test translations' latent codes.
@@ -145,6 +152,11 @@ def run_variant(params, pairs, splits, direction, overrides, seed, iterations, t
               f"referee FID by step {scores}", flush=True)
     inputs, input_classes = context["test_inputs"], context["test_input_classes"]
     labels = conditioning.labels(list(input_classes)) if conditioning.needs_labels else None
+    if conditioning.kind == "inferred":  # how often the generator is told the test input's own class
+        read = read_rate(conditioning, inputs, input_classes)
+        low, high = wilson_interval(read, len(inputs))
+        print(f"# conditioning inferred: the reader reads the test inputs' class at {read:.3f} "
+              f"[{low:.3f}, {high:.3f}] (n = {len(inputs)})", flush=True)
     results = []
     for psi in truncations:
         generated = translate(result.generator.eval(), inputs, conditioning=conditioning, labels=labels,

@@ -89,3 +89,30 @@ def test_a_variant_may_set_an_optional_key_an_older_run_folder_lacks(default_par
     with pytest.raises(TypeError) as error:  # pairs=None: past the variant's keys, into loading the data
         run_variant(default_params, None, None, "t2v", {"class_gan.d_antialias": True}, 0, 10, 1, Path("."), None)
     assert "variant key" not in str(error.value)
+
+
+def test_read_rate_counts_the_inputs_whose_class_the_inferred_reader_reads(monkeypatch):
+    """A feature reader fitted on red and blue tiles reads new red and blue tiles right (rate 1) and, asked
+    against swapped names, wrong (rate 0); half the names swapped gives 0.5."""
+    import torch
+
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    from unaligned_ablation import read_rate
+    from vtgen.core.conditioning import Conditioning
+    from vtgen.core.readers import fit_feature_reader
+
+    generator = torch.Generator().manual_seed(0)
+
+    def tiles(colour, n):
+        base = torch.tensor(colour, dtype=torch.float32)[None, :, None, None].expand(n, 3, 32, 32)
+        return (base + 60 * torch.rand(n, 3, 32, 32, generator=generator)).clamp(0, 255).to(torch.uint8)
+
+    train = torch.cat([tiles((180, 30, 30), 20), tiles((30, 30, 180), 20)])
+    reader = fit_feature_reader(train, torch.tensor([0] * 20 + [1] * 20), 2)
+    conditioning = Conditioning("inferred", ("red", "blue"), classifier=reader,
+                                classifier_settings={"reader": "features", "size": 32})
+    test = torch.cat([tiles((180, 30, 30), 4), tiles((30, 30, 180), 4)])
+    names = ["red"] * 4 + ["blue"] * 4
+    assert read_rate(conditioning, test, names) == 1.0
+    assert read_rate(conditioning, test, names[::-1]) == 0.0
+    assert read_rate(conditioning, test, ["red"] * 8) == 0.5
