@@ -11,7 +11,7 @@ from sklearn.preprocessing import StandardScaler
 
 from conftest import TINY_MODEL
 from vtgen.core.models import UNetGenerator
-from vtgen.core.readers import FEATURE_COUNT, fit_feature_reader, handcrafted_features
+from vtgen.core.readers import FEATURE_COUNT, fit_feature_reader, handcrafted_features, SCALE_FLOOR
 from vtgen.io.checkpoints import load_translator, save_generator
 from vtgen.stages.generate import translate
 from vtgen.stages.train import build_conditioning, PairData
@@ -60,11 +60,34 @@ def test_reader_reads_new_images_and_keeps_scikit_learns_probabilities(names):
     assert (probabilities.argmax(axis=1) == new_labels.numpy()).all()
     features = handcrafted_features(images)
     scaler = StandardScaler().fit(features)
-    reference = LogisticRegression(C=0.1, max_iter=3000).fit(scaler.transform(features), labels.numpy())
-    expected = reference.predict_proba(scaler.transform(handcrafted_features(new_images)))
+    scale = np.maximum(scaler.scale_, SCALE_FLOOR * np.median(scaler.scale_))
+    reference = LogisticRegression(C=0.1, max_iter=3000).fit((features - scaler.mean_) / scale, labels.numpy())
+    expected = reference.predict_proba((handcrafted_features(new_images) - scaler.mean_) / scale)
     np.testing.assert_allclose(probabilities, expected, atol=1e-5)
     with pytest.raises(ValueError, match="at least 2 classes"):
         fit_feature_reader(images[:3], torch.zeros(3, dtype=torch.int64), 2)
+
+
+def test_a_feature_that_barely_varies_in_training_moves_a_new_images_reading_little():
+    """Three green pixels in one blue training tile give the green hue bins a tiny spread; a new tile with an
+    8 x 8 green patch then lands far out on them, and their weights (learnt from that one blue tile) pull its
+    reading towards blue. The scale floor (at least SCALE_FLOOR x the median feature's spread) keeps that pull
+    under half of what it is without the floor (scale_floor 0), and every new tile is still read by its colour."""
+    images, labels = coloured_set(30, seed=1, names=("red", "blue"))
+    images[45, :, 0, :3] = torch.tensor(HUES["green"], dtype=torch.uint8)[:, None]  # tile 45 is blue
+    new, truth = coloured_set(4, seed=2, names=("red", "blue"))
+    patched = new.clone()
+    patched[:, :, :8, :8] = torch.tensor(HUES["green"], dtype=torch.uint8)[:, None, None]
+
+    def pull(reader):  # mean change of the blue-minus-red logit that the patch makes
+        with torch.no_grad():
+            margin = [reader(x)[:, 1] - reader(x)[:, 0] for x in (new, patched)]
+            assert torch.equal((margin[1] > 0).long(), truth)
+        return float((margin[1] - margin[0]).mean())
+
+    floored = pull(fit_feature_reader(images, labels, 2))
+    plain = pull(fit_feature_reader(images, labels, 2, scale_floor=0.0))
+    assert plain > 0.5 and floored < plain / 2
 
 
 def test_a_class_without_training_images_is_never_read():
