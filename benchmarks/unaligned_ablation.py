@@ -66,6 +66,7 @@ from vtgen.core.distribution import (classifier_encoder, diversity_ratio, fid, f
                                      image_features, kid, mean_image_set, median_interval, memorisation, prdc_scores,
                                      spectrum_distance)
 from vtgen.core.domain import DIRECTIONS
+from vtgen.core.gan import to_model_range
 from vtgen.core.referee import at_side as resized  # area-resized uint8 tiles at the classifier's side
 from vtgen.core.translator import detail_concentration, detail_overlap, fine_detail
 from vtgen.io.checkpoints import load_translator
@@ -107,7 +108,7 @@ def class_diversity(generated: torch.Tensor, real: torch.Tensor, classes_gen: np
 def read_rate(conditioning, inputs: torch.Tensor, input_classes) -> float:
     """Share of uint8 ``inputs`` whose class an ``inferred`` conditioning's reader reads as ``input_classes``
     (their class names): how often the generator is told the class of what it translates."""
-    told = conditioning.probabilities(inputs.float() / 127.5 - 1.0).argmax(dim=1)
+    told = conditioning.probabilities(to_model_range(inputs)).argmax(dim=1)
     return float((told == conditioning.labels(list(input_classes))).float().mean())
 
 
