@@ -19,7 +19,10 @@ KID, FID and memorisation, each with a 95% interval and n) and, for item 3, the 
    classes cannot pass.
 3. Recognisable: GAN-test of the generated modality at least 0.8 x the lower of the two real-only
    accuracies. The goal is stated for a generator not told the class: where ``models/<direction>/all/train.json``
-   says the model was told it (``class`` or ``reference``), the row shows the figure and counts as n/a.
+   says the model was told it (``class`` or ``reference``), the row shows the figure and counts as n/a, and
+   a second row counts the GAN-test of the same model told instead the class a reader reads from each test
+   input (metrics.json ``gan_test_read``: the generate stage translates them, the classify stage scores them),
+   where the run has it.
 4. No copying: memorisation rate of generated not above the upper bound of real held-out's interval.
 
     python benchmarks/unaligned_goals.py                 # the run in the working directory
@@ -106,6 +109,11 @@ def goal_rows(goals: dict, classify: dict, conditioning: dict | None = None) -> 
         told = conditioning.get(direction) in TOLD_THE_CLASS
         item = f"3 GAN-test ({target})" + (f", told the class ({conditioning[direction]})" if told else "")
         rows.append((direction, item, "-" if gan is None else f"{gan:.3g}", threshold, _verdict(None if told else ok)))
+        read = (classify.get(target) or {}).get("gan_test_read")  # the same model told the class read from its input
+        if told and read is not None:
+            ok = None if None in reals else read >= 0.8 * min(reals)
+            rows.append((direction, f"3 GAN-test ({target}), told the class read from the input", f"{read:.3g}",
+                         threshold, _verdict(ok)))
         mem = {k: v for k, v in g.items() if k.startswith("memorisation_")}
         for name, entry in mem.items():
             gen, real = entry.get("generated"), entry.get("real_heldout")

@@ -116,3 +116,22 @@ def test_read_rate_counts_the_inputs_whose_class_the_inferred_reader_reads(monke
     assert read_rate(conditioning, test, names) == 1.0
     assert read_rate(conditioning, test, names[::-1]) == 0.0
     assert read_rate(conditioning, test, ["red"] * 8) == 0.5
+
+
+def test_goal_3_counts_the_figure_told_the_class_read_for_a_model_told_the_class(monkeypatch):
+    """unaligned_goals: for a T2V model told the class, the told figure is shown as n/a and the GAN-test told the
+    class read from the input is counted against 0.8 x the lower real-only accuracy: pass above, fail below;
+    without that figure there is no such row; a model told nothing is counted on its GAN-test alone."""
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    from unaligned_goals import goal_rows
+
+    def rows(read, conditioning="class"):
+        visual = {"gan_test": 0.479, "real": 0.376} | ({} if read is None else {"gan_test_read": read})
+        found = goal_rows({"t2v": {}}, {"visual": visual, "tactile": {"real": 0.25}}, {"t2v": conditioning})
+        return {item: verdict for _, item, _, _, verdict in found if item.startswith("3 ")}
+
+    assert rows(0.254) == {"3 GAN-test (visual), told the class (class)": "n/a",
+                           "3 GAN-test (visual), told the class read from the input": "PASS"}  # bar 0.2
+    assert rows(0.19)["3 GAN-test (visual), told the class read from the input"] == "FAIL"
+    assert rows(None) == {"3 GAN-test (visual), told the class (class)": "n/a"}
+    assert rows(0.19, "none") == {"3 GAN-test (visual)": "PASS"}  # its own GAN-test, 0.479

@@ -673,6 +673,37 @@ def test_policy_adds_no_pure_noise_and_reports_the_real_only_accuracy(tmp_path, 
 
 
 @pytest.mark.slow
+def test_the_gan_test_of_outputs_told_the_class_read_is_the_real_only_accuracy_on_them(tmp_path, monkeypatch):
+    """Generated rows of split test_read (test inputs told the class read from them) are scored by the real-only
+    classifiers against their input's class: where those images are the real test images themselves, the score is
+    the real-only test accuracy to the digit, with its n and interval; without such rows the summary has no
+    ``gan_test_read``; a test_read row made from a training input is refused as a split leak."""
+    monkeypatch.chdir(tmp_path)
+    splits = noise_layout(tmp_path, val=0, noise_per_input=1)
+    table_path = tmp_path / "data/generated/t2v/generated.parquet"
+    generated = pd.read_parquet(table_path)
+    inputs = splits[(splits["modality"] == "tactile") & (splits["split"] == "test")].sort_values("path")
+    targets = splits[(splits["modality"] == "visual") & (splits["split"] == "test")].sort_values("path")
+    read = pd.DataFrame(dict(direction="t2v", scope="all", split="test_read", **{"class": list(targets["class"])},
+                             input_path=list(inputs["path"]), output_path=list(targets["path"]),
+                             ground_truth_path=None, model="copies"))
+    assert list(inputs["class"]) == list(targets["class"])
+    pd.concat([generated, read], ignore_index=True).to_parquet(table_path)
+    params = classify_params(epochs=2, seeds=[0, 1])
+    summary = run_classify(params, "visual", "data/pairs", "data/generated", "out/visual", progress=False)
+    told_read, real = summary["gan_test_read"], summary["settings"]["real"]
+    assert told_read["final_mean"] == real["final_mean"] and told_read["images"] == len(targets) == 12
+    assert told_read["seeds"] == 2 and told_read["interval"] == real["interval"]
+    plain = run_classify(params, "tactile", "data/pairs", "data/generated", "out/tactile", progress=False)
+    assert "gan_test_read" not in plain
+    leaked = read.assign(input_path=list(splits[(splits["modality"] == "tactile")
+                                                & (splits["split"] == "train")]["path"][:12]))
+    pd.concat([generated, leaked], ignore_index=True).to_parquet(table_path)
+    with pytest.raises(ValueError, match="'test_read' image.*not test-split tactile tiles"):
+        run_classify(params, "visual", "data/pairs", "data/generated", "out/visual2", progress=False)
+
+
+@pytest.mark.slow
 def test_policy_without_a_validation_split_is_real_only_and_says_why(tmp_path, monkeypatch):
     """Too few groups for a validation split: no candidate is trained and the reason is recorded."""
     monkeypatch.chdir(tmp_path)

@@ -15,6 +15,7 @@ from conftest import pair_tables
 from vtgen.cli import main
 from vtgen.io.checkpoints import load_translator
 from vtgen.stages.generate import other_codes, run_generate, select_inputs, translate, translate_files
+from vtgen.core.conditioning import Conditioning
 from vtgen.core.gan import to_model_range, to_uint8
 from vtgen.core.models import UNetGenerator, fixed_codes
 from vtgen.io.checkpoints import input_preparation, save_generator
@@ -397,3 +398,59 @@ def test_run_train_records_the_preparation_of_its_training_data(tmp_path, monkey
     prep = meta["preparation"]
     assert prep["roi"] == {k: params["roi"][k] for k in ROI} and prep["input_modality"] == "visual"
     assert prep["model_size"] == 32 and prep["input_channels"] == 3  # pair_tables' tiles are random colour
+
+
+
+def coloured_class_pairs(tmp_path, monkeypatch) -> pd.DataFrame:
+    """The small v2t pairs folder as class pairs, with tiles a feature reader can read: class a reddish, class b
+    bluish, except b's test photo, which is reddish (so it is read as a). Returns the split table."""
+    write_pairs_folder(tmp_path, monkeypatch)
+    pairs = pd.read_parquet("pairs/v2t.parquet").assign(aligned=False, pair_kind="class")
+    pairs.to_parquet("pairs/v2t.parquet")
+    splits = pd.read_parquet("pairs/splits.parquet")
+    rng = np.random.default_rng(5)
+    for row in splits.itertuples():
+        reddish = row[2] == "a" or (row.split == "test" and row.modality == "visual")  # row[2]: the class column
+        tile = rng.integers(0, 8, (32, 32, 3), dtype=np.uint8)
+        tile[..., 0 if reddish else 2] += 180
+        write_image(tmp_path / row.path, tile)
+    return splits
+
+
+def test_a_generator_told_the_class_also_translates_each_test_input_told_the_class_read_from_it(tmp_path,
+                                                                                                monkeypatch):
+    """Issue 24, goal 3 for a generator told the class: under the class-pair objective the stage also writes each
+    test input translated told the class a feature reader (fitted on the training inputs) reads from it (split
+    test_read, the input's true class), with the plain test outputs' latent codes, so an input read right gets the
+    identical image and one read wrong gets the other class's; the summary counts the reading. A pix2pix model told
+    the class, and a generator told nothing, write no such rows."""
+    splits = coloured_class_pairs(tmp_path, monkeypatch)
+    assert list(splits.columns[:2]) == ["path", "class"]
+    conditioning = Conditioning("class", ("a", "b"))
+    torch.manual_seed(0)
+    generator = UNetGenerator(32, 8, 4, in_channels=3 + conditioning.extra_channels, latent=4)
+    for name, settings in (("gan", dict(SETTINGS, latent=4, objective="class_gan")), ("pix", dict(SETTINGS, latent=4))):
+        (tmp_path / f"models_{name}/v2t/all").mkdir(parents=True)
+        save_generator(tmp_path / f"models_{name}/v2t/all/generator.pt", generator, settings, "v2t", "all",
+                       conditioning=conditioning)
+    summary = run_generate(tiny_params(), "v2t", "pairs", "models_gan/v2t", "generated", progress=False)
+    table = pd.read_parquet("generated/generated.parquet")
+    test, read = (table[table["split"] == s].sort_values("input_path") for s in ("test", "test_read"))
+    assert list(read["input_path"]) == list(test["input_path"]) and list(read["class"]) == ["a", "b"]
+    assert summary["scopes"]["all"]["told_the_class_read"] == {"reader": "features", "inputs": 2, "read_correctly": 1,
+                                                               "read_accuracy": 0.5}
+    pixels = {p: np.asarray(Image.open(p)) for p in list(test["output_path"]) + list(read["output_path"])}
+    a_test, b_test = test["output_path"]
+    a_read, b_read = read["output_path"]
+    assert np.array_equal(pixels[a_read], pixels[a_test])  # read right: the same image
+    assert not np.array_equal(pixels[b_read], pixels[b_test])  # b's photo is read as a
+    model, meta = load_translator("models_gan/v2t/all")
+    batch = table[table["split"] != "test_read"].iloc[:8]  # the stage's first batch (tiny_params' batch_size 8), seed 0
+    assert list(batch["split"][:2]) == ["test", "test"]
+    labels = conditioning.labels(list(batch["class"]))
+    labels[1] = 0  # b's test photo told a, as read
+    expected = translate(model, read_tiles(list(batch["input_path"]), 32), conditioning=conditioning, labels=labels,
+                         seed=0)
+    assert np.array_equal(pixels[b_read], expected[1].permute(1, 2, 0).numpy())
+    run_generate(tiny_params(), "v2t", "pairs", "models_pix/v2t", "generated_pix", progress=False)
+    assert "test_read" not in set(pd.read_parquet("generated_pix/generated.parquet")["split"])

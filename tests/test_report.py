@@ -764,6 +764,36 @@ def test_gan_test_caveat_says_what_the_generator_was_told():
                                                           {"direction": "t2v", "conditioning": "class"}]) is None
 
 
+
+def test_gan_test_caveat_gives_the_figure_told_the_class_read_from_the_input():
+    """Told the class, and scored again told the class a reader read from each input (the classify stage's
+    gan_test_read, the generate stage's counts summed over scopes): the caveat gives that GAN-test with its
+    interval and how often the reader read the input's own class, as goal 3's figure; metrics.json carries it."""
+    from vtgen.io.report_metrics import classify_headline
+    from vtgen.stages.report import conditioned_gan_test_note, read_class_counts
+
+    summary = {"gan_test": {"final_mean": 0.479}, "settings": {"real": {"final_mean": 0.263}},
+               "gan_test_read": {"final_mean": 0.254, "interval": [0.203, 0.313], "images": 240}}
+    generate = {"scopes": {"all": {"test": 120, "told_the_class_read": {"reader": "features", "inputs": 120,
+                                                                         "read_correctly": 40}},
+                           "felt": {"test": 60, "told_the_class_read": {"reader": "features", "inputs": 60,
+                                                                          "read_correctly": 20}},
+                           "wool": {"status": "not applicable: one class"}}}
+    read = read_class_counts(generate)
+    assert read == {"reader": "features", "inputs": 180, "read_correctly": 60}
+    assert read_class_counts({"scopes": {"all": {"test": 120}}}) is None
+    note = conditioned_gan_test_note("visual", summary, [{"direction": "t2v", "conditioning": "class"}], read)
+    assert "0.479" in note and "0.254 [0.203, 0.313]" in note and "240 test translations" in note
+    assert "features reader reads from each input (its own class for 60 of 180)" in note and "goal 3" in note
+    plain = conditioned_gan_test_note("visual", {k: v for k, v in summary.items() if k != "gan_test_read"},
+                                      [{"direction": "t2v", "conditioning": "class"}], read)
+    assert "0.254" not in plain and "goal 3" not in plain
+    accuracy = pd.DataFrame({"setting": ["real"], "seed": [0], "epoch": [1], "test_accuracy": [0.263],
+                             "gan_test_accuracy": [0.479]})
+    assert classify_headline({"accuracy": accuracy, "summary": summary})["gan_test_read"] == 0.254
+    assert "gan_test_read" not in classify_headline({"accuracy": accuracy, "summary": {}})
+
+
 def test_realistic_gan_test_reads_both_confusions_and_what_the_generator_was_told():
     """The target modality's judge (tactile: class 0 called right at 0.5, class 1 at 1.0) scores real images of
     the class each input shows: read by the input modality's classifier unless the generator was told it."""

@@ -109,7 +109,8 @@ def _checked_preparation(saved: dict, size: int, path: Path) -> dict | None:
 def load_translator(model: str | Path, device: str = "cpu") -> tuple[torch.nn.Module, dict]:
     """Load a generator written by the train stage (its folder or its generator.pt), in eval mode.
 
-    The record holds direction, scope, input_modality, output_modality, size, path,
+    The record holds direction, scope, input_modality, output_modality, size, path, objective (the
+    train stage's: pix2pix or class_gan),
     ``conditioning`` (a :class:`Conditioning`; ``none`` for files from before it existed) and
     ``preparation`` (see :func:`input_preparation`), which is None for model files written before
     it was recorded; ``note`` then says so (and is "" otherwise).
@@ -130,6 +131,7 @@ def load_translator(model: str | Path, device: str = "cpu") -> tuple[torch.nn.Mo
     except (KeyError, TypeError, RuntimeError, EOFError, OSError, pickle.UnpicklingError) as exc:
         raise ValueError(f"{path}: not a vtgen generator checkpoint ({exc})") from exc
     meta["size"], meta["path"] = settings["size"], str(path)
+    meta["objective"] = settings.get("objective", "pix2pix")
     meta["preparation"] = _checked_preparation(saved, settings["size"], path)
     meta["note"] = "" if meta["preparation"] else (
         f"{path}: no input preparation recorded (a model file from before it was); inputs must be "

@@ -87,7 +87,8 @@ def distribution_headline(distribution: pd.DataFrame, memorisation: pd.DataFrame
 def classify_headline(entry: dict) -> dict:
     """Mean final-epoch test accuracy over seeds per setting, the GAN-test, the GAN-test as a share of the
     real-only test accuracy (``gan_test_vs_real``: how recognisable generated images are against real
-    ones), the test-set size, the accuracy gained from generated images per comparison
+    ones), for a generator told the class the GAN-test of its outputs told the class read from each input
+    (``gan_test_read``, the classify stage's), the test-set size, the accuracy gained from generated images per comparison
     (``gain_from_generated``) with its paired 95% interval (``gain_from_generated_paired95``: low, high) and the
     policy's (``policy``: the chosen setting's test accuracy beside real only's, their difference with its
     paired 95% interval (gain_low, gain_high) and 1 where it adds generated images, 0 where not)."""
@@ -100,6 +101,7 @@ def classify_headline(entry: dict) -> dict:
     result["gan_test"] = _number(gan.mean()) if len(gan) else None
     if result["gan_test"] is not None and result.get("real"):
         result["gan_test_vs_real"] = _number(result["gan_test"] / result["real"])
+    result["gan_test_read"] = _number((summary.get("gan_test_read") or {}).get("final_mean"))
     result["seeds"] = int(last["seed"].nunique())
     result["real_test_images"] = (summary.get("counts") or {}).get("real_test")
     result["gain_from_generated"] = _compact({c["setting"]: _number(c["difference"])

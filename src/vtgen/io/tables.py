@@ -23,6 +23,7 @@ PAIR_COLUMNS = [
 PAIR_KINDS = ("pixel", "name", "class")
 
 GENERATED_COLUMNS = ["direction", "scope", "split", "class", "input_path", "output_path", "ground_truth_path", "model"]
+READ_SPLIT = "test_read"  # generated rows of test inputs told the class a reader reads from each (generate stage)
 
 MANIFEST_COLUMNS = [
     "path", "md5", "modality", "class", "split", "source", "group", "pair_key",

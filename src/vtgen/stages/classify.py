@@ -65,7 +65,7 @@ from vtgen.core.classifier import TrainingDiverged, at_chance, class_probabiliti
 from vtgen.core.confusion import confusion_counts
 from vtgen.io.checkpoints import read_state_dict
 from vtgen.io.classifiers import save_classifier
-from vtgen.io.tables import GENERATED_COLUMNS
+from vtgen.io.tables import GENERATED_COLUMNS, READ_SPLIT
 from vtgen.io.images import atomic_output_dir
 from vtgen.io.tables import read_table
 from vtgen.core.domain import direction_producing, DIRECTIONS
@@ -84,25 +84,41 @@ BY_CLASS_COLUMNS = ["modality", "setting", "class", "images", "accuracy", "low",
 COMPARISONS = (("real+generated", "real"), ("low-data real+generated", "low-data real"))
 MORE_REAL = ("real", "low-data real")  # how much all real training images add over the low-data share
 GAN_TEST = "GAN-test"
+READ_GAN_TEST = "gan_test_read"  # the extra evaluation set of the test inputs told the class read from them
 
 
 def check_generated_splits(generated: pd.DataFrame, splits: pd.DataFrame, direction: str) -> None:
     """Raise ValueError unless every generated ``train`` row comes from a training input tile and every
-    ``test`` row from a test input tile of the direction's source modality (no split leaks)."""
+    ``test`` or ``test_read`` row (:data:`vtgen.io.tables.READ_SPLIT`) from a test input tile of the
+    direction's source modality (no split leaks)."""
     source = DIRECTIONS[direction][0]
     tile_split = dict(zip(splits.loc[splits["modality"] == source, "path"],
                           splits.loc[splits["modality"] == source, "split"]))
-    for split in ("train", "test"):
+    for split, needed in (("train", "train"), ("test", "test"), (READ_SPLIT, "test")):
         rows = generated[generated["split"] == split]
         found = rows["input_path"].map(tile_split)
-        wrong = rows[found != split]
+        wrong = rows[found != needed]
         if len(wrong):
-            first, actual = wrong.iloc[0], found[found != split].iloc[0]
+            first, actual = wrong.iloc[0], found[found != needed].iloc[0]
             where = "not a tile in splits.parquet" if pd.isna(actual) else f"a {actual}-split tile"
             kind = "split leak: " if split == "train" and actual == "test" else "inconsistent generated table: "
             raise ValueError(f"{kind}{len(wrong)} generated '{split}' image(s) of {direction} come from inputs that are "
-                             f"not {split}-split {source} tiles; first: {first['output_path']} from {first['input_path']} "
+                             f"not {needed}-split {source} tiles; first: {first['output_path']} from {first['input_path']} "
                              f"({where}); rerun the generate stage on these splits")
+
+
+def read_gan_test(runs: dict, labels: torch.Tensor, num_classes: int) -> dict | None:
+    """The GAN-test of the test inputs translated told the class read from each (``gan_read``, the generate
+    stage's :data:`~vtgen.io.tables.READ_SPLIT`): the real-only classifiers' final-epoch accuracy on them
+    against each input's true class, mean and std over seeds, with the Wilson 95% interval on their n and
+    ``at_chance``. Issue 24's goal 3 for a generator told the class reads this one. None without such images."""
+    if not len(labels):
+        return None
+    scores = [float((entry["run"].extra_predictions[READ_GAN_TEST] == labels).float().mean())
+              for (setting, _), entry in sorted(runs.items()) if setting == "real"]
+    mean, std = _mean_std(scores)
+    return {"final_mean": mean, "final_std": std, "images": len(labels), "seeds": len(scores),
+            "interval": _interval(mean, len(labels)), "at_chance": at_chance(mean, len(labels), num_classes)}
 
 
 def low_data_subset(labels: np.ndarray, fraction: float, seed: int) -> np.ndarray:
@@ -380,6 +396,7 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     predictions.update({(GAN_TEST, seed): r["run"].extra_predictions["gan_test"].numpy()
                         for (setting, seed), r in runs.items() if setting == "real" and len(sets["gan"][0])})
     per_setting, gan_test = summarise(table, len(classes), len(sets["test"][0]), len(sets["gan"][0]))
+    gan_test_read = read_gan_test(runs, sets["gan_read"][1], len(classes))
     paired = paired_gains(runs, sets)
     by_class = pd.concat([
         accuracy_by_class({k: v for k, v in predictions.items() if k[0] != GAN_TEST}, sets["test"][1].numpy(), classes,
@@ -391,6 +408,7 @@ def run_classify(params: dict, modality: str, pairs_dir: str | Path, generated_r
     encoder = runs[("real", cfg["seeds"][0])]["run"].model
     summary.update(status="ok", chance=1.0 / len(classes), device=str(device), precision={"used": precision, "why": why},
                    counts=sets["counts"], settings=per_setting, skipped=skipped, gan_test=gan_test,
+                   **({"gan_test_read": gan_test_read} if gan_test_read else {}),
                    comparisons=compare_settings(per_setting, paired), more_real_data=more_real_data(paired),
                    policy=choose_policy(plan, runs, sets, per_setting),
                    real_confusion=[[round(float(v), 6) for v in row] for row in real_confusion],
@@ -423,7 +441,8 @@ def _not_applicable(summary: dict, modality: str, real_train: int, out_dir: Path
 def _image_sets(real: pd.DataFrame, generated: pd.DataFrame, classes: list[str], size: int, direction: str,
                 notes: list[str]) -> dict:
     """The image sets as (images, labels): ``train``, ``val`` and ``test`` (real), ``generated`` (training
-    inputs translated) and ``gan`` (test inputs translated, for the GAN-test), plus ``counts`` and the
+    inputs translated), ``gan`` (test inputs translated, for the GAN-test) and ``gan_read`` (test inputs
+    translated told the class read from them, where the generate stage wrote them; else empty), plus ``counts`` and the
     split groups of the validation and test images (``val_groups``, ``test_groups``). Each tile is
     decoded once here and shared by every setting and seed. Images of classes without real training
     tiles are left out, with a note; a test or validation image in a training set is a split leak and
@@ -432,13 +451,14 @@ def _image_sets(real: pd.DataFrame, generated: pd.DataFrame, classes: list[str],
     by_split = {split: real[real["split"] == split].sort_values("path") for split in ("train", "val", "test")}
     gen_train = generated[generated["split"] == "train"].sort_values(["scope", "output_path"])
     gen_test = generated[generated["split"] == "test"].sort_values(["scope", "output_path"])
+    gen_read = generated[generated["split"] == READ_SPLIT].sort_values(["scope", "output_path"])
     for name, frame in (("real validation", by_split["val"]), ("real test", by_split["test"]),
                         ("generated training", gen_train), ("generated test", gen_test)):
         unknown = sorted(set(frame["class"]) - set(classes))
         if unknown:
             notes.append(f"{name} images of classes without real training tiles left out: {', '.join(unknown)}")
-    real_val, real_test, gen_train, gen_test = (f[f["class"].isin(classes)]
-                                                for f in (by_split["val"], by_split["test"], gen_train, gen_test))
+    real_val, real_test, gen_train, gen_test, gen_read = (
+        f[f["class"].isin(classes)] for f in (by_split["val"], by_split["test"], gen_train, gen_test, gen_read))
     real_train = by_split["train"]
     held_out = set(real[real["split"].isin(["test", "val"])]["path"])
     leaked = held_out & (set(real_train["path"]) | set(gen_train["output_path"]))
@@ -452,6 +472,7 @@ def _image_sets(real: pd.DataFrame, generated: pd.DataFrame, classes: list[str],
 
     sets = {"train": load(real_train, "path"), "val": load(real_val, "path"), "test": load(real_test, "path"),
             "generated": load(gen_train, "output_path"), "gan": load(gen_test, "output_path"),
+            "gan_read": load(gen_read, "output_path"),
             "val_groups": real_val["group"].astype(str).to_numpy(), "test_groups": real_test["group"].astype(str).to_numpy(),
             "val_classes": sorted(set(real_val["class"]))}
     sets["counts"] = {"real_train": len(real_train), "real_val": len(real_val), "real_test": len(real_test),
@@ -672,7 +693,10 @@ def _seed_runs(seed: int, job: dict, bar) -> tuple[dict, dict, dict]:
             runs[(setting, seed)] = dict(runs[("real", seed)], generated=0, seconds=0.0)
             bar.update(1)
             continue
-        extra = {"gan_test": sets["gan"]} if setting == "real" and len(sets["gan"][0]) else None
+        extra = None
+        if setting == "real":
+            extra = {name: sets[key] for name, key in (("gan_test", "gan"), (READ_GAN_TEST, "gan_read"))
+                     if len(sets[key][0])} or None
         run = _train_one(x, y, sets, cfg, modality, setting, seed, job["num_classes"], job["device"], job["precision"],
                          job["weights"], cfg["weights"] or None, extra, val, bar)
         runs[(setting, seed)] = {"run": run, "train_images": real_count + generated, "real_images": real_count,

@@ -23,6 +23,7 @@ from PIL import Image
 from tqdm import tqdm
 
 from vtgen.core.conditioning import Conditioning
+from vtgen.core.readers import fit_feature_reader
 from vtgen.io.images import atomic_output_dir, display_path, labelled_sheet, read_rgb8, stream_map, write_png
 from vtgen.io.tables import read_table
 from vtgen.core.translation import translate  # noqa: F401 (also this stage's public name)
@@ -30,7 +31,7 @@ from vtgen.core.roi import image_tiles
 from vtgen.core.domain import DIRECTIONS
 from vtgen.io.tables import PAIR_COLUMNS, SPLIT_COLUMNS
 from vtgen.io.images import read_tiles
-from vtgen.io.tables import GENERATED_COLUMNS
+from vtgen.io.tables import GENERATED_COLUMNS, READ_SPLIT
 from vtgen.io.checkpoints import load_translator
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".npy"}
@@ -104,6 +105,49 @@ def real_examples_of(splits: pd.DataFrame, direction: str, per_class: int = 4) -
     return {cls: list(group["path"].head(per_class)) for cls, group in rows.groupby("class", sort=True)}
 
 
+def reads_the_class(meta: dict) -> bool:
+    """Whether the generate stage also writes :func:`read_class_outputs` for this model: a generator told each
+    input's true class (conditioning ``class``) under the class-pair objective, of two classes or more."""
+    conditioning = meta["conditioning"]
+    return conditioning.kind == "class" and meta.get("objective") == "class_gan" and len(conditioning.classes) > 1
+
+
+def read_output_name(output_name: str) -> str:
+    """Where :func:`read_class_outputs` writes the image of the test output ``output_name``
+    (images/<scope>/test/... -> images/<scope>/test_read/...)."""
+    parts = Path(output_name).parts
+    return str(Path(*parts[:2], READ_SPLIT, *parts[3:]))
+
+
+def class_reader(meta: dict, splits: pd.DataFrame, direction: str, scope: str) -> torch.nn.Module:
+    """The reader of :func:`read_class_outputs`: a hand-crafted-feature reader
+    (:func:`vtgen.core.readers.fit_feature_reader`) fitted on the scope's training inputs of the model's classes,
+    what ``conditioning: inferred`` with ``translation.inferred_reader: features`` would be told by."""
+    conditioning = meta["conditioning"]
+    train = splits[(splits["modality"] == DIRECTIONS[direction][0]) & (splits["split"] == "train")
+                   & splits["class"].isin(conditioning.classes)].sort_values("path")
+    if scope != "all":
+        train = train[train["class"] == scope]
+    return fit_feature_reader(read_tiles(list(train["path"]), meta["size"]),
+                              conditioning.labels(list(train["class"])), len(conditioning.classes))
+
+
+def read_class_outputs(generator: torch.nn.Module, meta: dict, reader: torch.nn.Module, chunk: pd.DataFrame,
+                       inputs: torch.Tensor, seed: int, truncation: float) -> tuple[list[np.ndarray], int]:
+    """The test rows of one batch ``chunk`` (its ``inputs``) of a generator told the class (:func:`reads_the_class`),
+    translated told instead the class ``reader`` (:func:`class_reader`) reads from each: what a generator not told
+    the class can at best be (issue 24, goal 3); the classify stage scores them as a second GAN-test. The whole
+    batch is translated with the plain outputs' ``seed``, so each input keeps its latent code and one read as its
+    own class gets the identical image. Returns (the test rows' images, H x W x 3 uint8; how many were read right)."""
+    conditioning = meta["conditioning"]
+    test = torch.tensor((chunk["split"] == "test").to_numpy())
+    truth = conditioning.labels(list(chunk["class"]))
+    with torch.no_grad():
+        read = torch.where(test, reader(inputs).argmax(dim=1), truth)
+    images = translate(generator, inputs, conditioning=conditioning, labels=read, seed=seed, truncation=truncation)
+    return [image.permute(1, 2, 0).numpy() for image in images[test]], int((read[test] == truth[test]).sum())
+
+
 def _training_status(model_dir: Path) -> str:
     """The train stage's status of one model folder ("ok" when it holds a model)."""
     record = model_dir / "train.json"
@@ -118,7 +162,9 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
 
     Writes ``images/<scope>/<split>/<class>/<name>.png``, ``generated.parquet`` (GENERATED_COLUMNS;
     ground_truth_path is empty where the pair is not an aligned view), ``preview.png`` and
-    ``summary.json`` into ``out_dir`` atomically.
+    ``summary.json`` into ``out_dir`` atomically. For a generator told the class under the class-pair objective
+    it also writes the test inputs told the class read from them (:func:`read_class_outputs`: split
+    :data:`READ_SPLIT`, summary ``told_the_class_read``: reader, inputs, read_correctly, read_accuracy).
     """
     cfg = params["generate"]
     truncation = cfg["truncation"][direction] if isinstance(cfg["truncation"], dict) else cfg["truncation"]
@@ -138,24 +184,41 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
             rows = select_inputs(splits, pairs, direction, scope, cfg["train_share"], cfg["seed"])
             rows["output_name"] = [f"images/{scope}/{split}/{cls}/{Path(path).stem}.png"
                                    for split, cls, path in zip(rows["split"], rows["class"], rows["input_path"])]
+            reader = class_reader(meta, splits, direction, scope) if reads_the_class(meta) else None
+            read_names, read_right = [], 0
             for start in tqdm(range(0, len(rows), cfg["batch_size"]), desc=f"generate {direction}/{scope}",
                               unit="batch", disable=not progress, mininterval=1.0):
                 chunk = rows.iloc[start:start + cfg["batch_size"]]
-                outputs = translate(generator, read_tiles(list(chunk["input_path"]), meta["size"]),
-                                    conditioning=meta["conditioning"],
+                inputs = read_tiles(list(chunk["input_path"]), meta["size"])
+                outputs = translate(generator, inputs, conditioning=meta["conditioning"],
                                     labels=meta["conditioning"].labels(list(chunk["class"])), seed=start,
                                     truncation=truncation)
-                for name, image in zip(chunk["output_name"], outputs):
+                written = [(name, image.permute(1, 2, 0).numpy()) for name, image in zip(chunk["output_name"], outputs)]
+                if reader is not None and (chunk["split"] == "test").any():
+                    images, right = read_class_outputs(generator, meta, reader, chunk, inputs, start, truncation)
+                    names = [read_output_name(n) for n in chunk.loc[chunk["split"] == "test", "output_name"]]
+                    written += list(zip(names, images))
+                    read_names, read_right = read_names + names, read_right + right
+                for name, image in written:
                     (tmp / name).parent.mkdir(parents=True, exist_ok=True)
-                    write_png(tmp / name, image.permute(1, 2, 0).numpy())
+                    write_png(tmp / name, image)
             if generator.latent and truncation > 0:  # at psi 0 every draw is the mean code's: nothing more to show
                 draws.update(other_codes(generator, meta, rows[rows["split"] == "test"], truncation=truncation))
+            read_summary = None
+            if reader is not None:
+                test_rows = rows[rows["split"] == "test"]
+                rows = pd.concat([rows, test_rows.assign(split=READ_SPLIT, output_name=read_names)], ignore_index=True)
+                read_summary = {"reader": "features", "inputs": len(test_rows), "read_correctly": read_right,
+                                "read_accuracy": round(read_right / len(test_rows), 6) if len(test_rows) else None}
             rows["output_path"] = [str(out_dir / n) for n in rows["output_name"]]
             rows["direction"], rows["scope"], rows["model"] = direction, scope, str(models_dir / scope / "generator.pt")
             tables.append(rows)
             summary["scopes"][scope] = {s: int((rows["split"] == s).sum()) for s in ("train", "test")}
             summary["scopes"][scope]["conditioning"] = meta["conditioning"].kind
-            summary["scopes"][scope]["with_ground_truth"] = int((rows["ground_truth_path"] != "").sum())
+            summary["scopes"][scope]["with_ground_truth"] = int((rows["ground_truth_path"].loc[rows["split"] != READ_SPLIT]
+                                                                 != "").sum())
+            if read_summary is not None:
+                summary["scopes"][scope]["told_the_class_read"] = read_summary
             if generator.latent and truncation != 1.0:  # the plain draw adds no key: the default's summary stays as it was
                 summary["scopes"][scope]["truncation"] = truncation
         table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame(columns=GENERATED_COLUMNS)
@@ -168,6 +231,11 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
     for scope, counts in summary["scopes"].items():
         print(f"generate {direction}/{scope}: {counts['test']} test and {counts['train']} training inputs translated "
               f"({counts['with_ground_truth']} with ground truth) -> {out_dir}")
+        read = counts.get("told_the_class_read")
+        if read:
+            print(f"generate {direction}/{scope}: the {read['inputs']} test inputs also translated told the class a "
+                  f"{read['reader']} reader reads from each (read right for {read['read_correctly']}), for goal 3's "
+                  f"GAN-test of a generator not told the class")
     return summary
 
 

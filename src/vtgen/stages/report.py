@@ -216,6 +216,8 @@ def collect(params: dict, inputs: ReportInputs) -> dict:
         "memorisation": read_table(inputs.scores / "memorisation.parquet", MEMORISATION_NEEDS,
                                    "the score stage's memorisation table"),
         "classify": classify, "realistic_gan_test": realistic_gan_tests(classify, runs),
+        "read_class": {d: read_class_counts(read_json(inputs.generated / d / "summary.json"))
+                       for d in DIRECTIONS if (inputs.generated / d / "summary.json").is_file()},
         "timings": stage_timings(inputs, runs),
     }
 
@@ -223,12 +225,26 @@ def collect(params: dict, inputs: ReportInputs) -> dict:
 # ---------------------------------------------------------------- the page
 
 
-def conditioned_gan_test_note(modality: str, summary: dict, runs: list[dict]) -> str | None:
+def read_class_counts(generate_summary: dict | None) -> dict | None:
+    """The generate stage's ``told_the_class_read`` summed over its scopes: {reader, inputs, read_correctly};
+    None where it translated no input told the class read from it."""
+    entries = [e["told_the_class_read"] for e in ((generate_summary or {}).get("scopes") or {}).values()
+               if isinstance(e, dict) and e.get("told_the_class_read")]
+    if not entries:
+        return None
+    return {"reader": ", ".join(sorted({e["reader"] for e in entries})),
+            "inputs": sum(e["inputs"] for e in entries), "read_correctly": sum(e["read_correctly"] for e in entries)}
+
+
+def conditioned_gan_test_note(modality: str, summary: dict, runs: list[dict], read: dict | None = None) -> str | None:
     """A caveat for the GAN-test of ``modality`` when the generator that made its images was told a class
     (train.json ``conditioning`` other than none): told each image's class (``class``, ``reference``), its
-    images can be easier to classify than real ones; told what a reader of the input read (``inferred``,
-    train.json ``input_reader``), they can be no more recognisable than that reading. Either way the GAN-test
-    is read against the real-only test accuracy; None when no generator was told a class."""
+    images can be easier to classify than real ones, and where the classify stage scored the same inputs told
+    the class a reader read from each (summary ``gan_test_read``; ``read``: :func:`read_class_counts`), that
+    GAN-test is given as the one of a generator not told the class (issue 24, goal 3); told what a reader of
+    the input read (``inferred``, train.json ``input_reader``), they can be no more recognisable than that
+    reading. Either way the GAN-test is read against the real-only test accuracy; None when no generator was
+    told a class."""
     made_by = [r for r in runs if r.get("direction") == direction_producing(modality) and r.get("status", "ok") == "ok"]
     kinds = sorted({r.get("conditioning", "none") for r in made_by} - {"none"})
     gan, real = summary.get("gan_test") or {}, (summary.get("settings") or {}).get("real") or {}
@@ -240,9 +256,18 @@ def conditioned_gan_test_note(modality: str, summary: dict, runs: list[dict]) ->
                 f"each input, never the image's own class (conditioning inferred), so the GAN-test "
                 f"({gan['final_mean']:.3f}) is bounded by how well the inputs can be read; read it against the "
                 f"real-only test accuracy ({real['final_mean']:.3f})")
-    return (f"the generator of these images was told each image's class (conditioning {', '.join(kinds)}), so the "
+    note = (f"the generator of these images was told each image's class (conditioning {', '.join(kinds)}), so the "
             f"GAN-test ({gan['final_mean']:.3f}) shows in part that it follows the class it is given; read it against "
             f"the real-only test accuracy ({real['final_mean']:.3f}), not as realism alone")
+    told_read = summary.get("gan_test_read") or {}
+    if told_read.get("final_mean") is None:
+        return note
+    low, high = told_read.get("interval") or (float("nan"), float("nan"))
+    reading = (f"the class a {read['reader']} reader reads from each input (its own class for "
+               f"{read['read_correctly']} of {read['inputs']})" if read else "the class a reader reads from each input")
+    return (f"{note}. Told instead {reading}, as a generator not told the class would be, its {told_read['images']} "
+            f"test translations score a GAN-test of {told_read['final_mean']:.3f} [{low:.3f}, {high:.3f}]: the "
+            f"figure issue 24's goal 3 reads")
 
 
 def realistic_gan_test_note(modality: str, summary: dict, oracle: dict | None) -> str | None:
@@ -261,7 +286,8 @@ def realistic_gan_test_note(modality: str, summary: dict, oracle: dict | None) -
             f"the data allows no more")
 
 
-def _classify_view(modality: str, entry: dict, runs: list[dict], oracle: dict | None = None) -> dict:
+def _classify_view(modality: str, entry: dict, runs: list[dict], oracle: dict | None = None,
+                   read: dict | None = None) -> dict:
     summary, table = entry["summary"], entry["accuracy"]
     status = summary.get("status", "ok")
     tables = []
@@ -282,7 +308,8 @@ def _classify_view(modality: str, entry: dict, runs: list[dict], oracle: dict | 
                                  f"{seeds} [95% Wilson interval on n = {n if n else '?'} real test images"
                                  + (f", {gan_n} generated for the GAN-test" if gan_n else "")
                                  + "], beside the paper's values at the same iteration"))
-    caveats = [conditioned_gan_test_note(modality, summary, runs), realistic_gan_test_note(modality, summary, oracle)]
+    caveats = [conditioned_gan_test_note(modality, summary, runs, read),
+               realistic_gan_test_note(modality, summary, oracle)]
     caveats = [c for c in caveats if c] if status == "ok" else []
     return {"modality": modality, "status": status, "tables": tables, "at_chance": entry["at_chance"],
             "classes": len(summary.get("classes", [])), "notes": summary.get("notes", []) + caveats}
@@ -356,7 +383,8 @@ def page_context(data: dict, figures: dict[str, bool], params: dict | None = Non
         "ms_ssim_note": None if ms_ssim == "computed" or not len(by_class) else f"MS-SSIM {ms_ssim}.",
         "ssim": [_direction_view(data, params, n, d) for n, d in (("I", "v2t"), ("II", "t2v"))
                  if d in set(by_class["direction"]) and d not in skipped],
-        "classify": [_classify_view(m, e, data["models"], (data.get("realistic_gan_test") or {}).get(m))
+        "classify": [_classify_view(m, e, data["models"], (data.get("realistic_gan_test") or {}).get(m),
+                                    (data.get("read_class") or {}).get(direction_producing(m)))
                      for m, e in data["classify"].items()],
         "timings": table_view(timings[["job", "seconds", "finished"]],
                               "Wall time of each job (timing.json in its output folder)") if not timings.empty else None,
