@@ -454,3 +454,8 @@ def test_a_generator_told_the_class_also_translates_each_test_input_told_the_cla
     assert np.array_equal(pixels[b_read], expected[1].permute(1, 2, 0).numpy())
     run_generate(tiny_params(), "v2t", "pairs", "models_pix/v2t", "generated_pix", progress=False)
     assert "test_read" not in set(pd.read_parquet("generated_pix/generated.parquet")["split"])
+    preview, plain = (np.asarray(Image.open(f"{folder}/preview.png")) for folder in ("generated", "generated_pix"))
+    assert preview.shape[1] - plain.shape[1] == 4 * 96  # one more group: the outputs told the class read
+    group = 120 + 4 * 4 * 96  # label column, then input, generated, codes 2 and 3: the group after them
+    cell = np.asarray(Image.fromarray(pixels[b_read]).resize((96, 96), Image.NEAREST))
+    assert np.array_equal(preview[24 + 96:24 + 2 * 96, group:group + 96], cell)  # class b's row, its first input

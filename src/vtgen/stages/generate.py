@@ -59,15 +59,18 @@ def select_inputs(splits: pd.DataFrame, pairs: pd.DataFrame, direction: str, sco
 
 def comparison_sheet(rows: pd.DataFrame, image_root: Path, per_class: int = 4,
                      real_examples: dict[str, list[str]] | None = None,
-                     other_draws: dict[str, list[np.ndarray]] | None = None) -> np.ndarray:
+                     other_draws: dict[str, list[np.ndarray]] | None = None,
+                     read_names: dict[str, str] | None = None) -> np.ndarray:
     """One row per class: inputs | generated (``output_name`` under ``image_root``) | ground truth where the
     pair is aligned, else ``real_examples[class]`` (real target-modality images of the class, not partners of
     the inputs: what generated images of the class should look like); grey when neither exists.
-    ``other_draws`` (output_name -> images of the same input under other latent codes) adds one group per draw."""
+    ``other_draws`` (output_name -> images of the same input under other latent codes) adds one group per draw;
+    ``read_names`` (output_name -> the name of the same input's output told the class read from it,
+    :func:`read_class_outputs`) adds a group after them."""
     def read(path) -> np.ndarray | None:
         return np.asarray(Image.open(path).convert("RGB")) if path else None
 
-    real_examples, other_draws = real_examples or {}, other_draws or {}
+    real_examples, other_draws, read_names = real_examples or {}, other_draws or {}, read_names or {}
     k = max((len(v) for v in other_draws.values()), default=0)
     sheet_rows = []
     for cls, group in rows.groupby("class", sort=True):
@@ -76,10 +79,13 @@ def comparison_sheet(rows: pd.DataFrame, image_root: Path, per_class: int = 4,
         if not any(truths):
             truths = (list(real_examples.get(cls, [])) + [""] * per_class)[:len(group)]
         draws = [[(other_draws.get(n) or [None] * k)[d] for n in group["output_name"]] for d in range(k)]
+        if read_names:
+            draws.append([read(image_root / read_names[n]) if n in read_names else None for n in group["output_name"]])
         sheet_rows.append((cls, [[read(p) for p in group["input_path"]],
                                  [read(image_root / n) for n in group["output_name"]], *draws,
                                  [read(p) for p in truths]]))
-    titles = ["input", "generated", *[f"generated, code {d + 2}" for d in range(k)], "ground truth, or real of the class"]
+    titles = ["input", "generated", *[f"generated, code {d + 2}" for d in range(k)],
+              *(["told the class read"] if read_names else []), "ground truth, or real of the class"]
     return labelled_sheet(sheet_rows, titles, per_class)
 
 
@@ -117,6 +123,12 @@ def read_output_name(output_name: str) -> str:
     (images/<scope>/test/... -> images/<scope>/test_read/...)."""
     parts = Path(output_name).parts
     return str(Path(*parts[:2], READ_SPLIT, *parts[3:]))
+
+
+def plain_output_name(read_name: str) -> str:
+    """The inverse of :func:`read_output_name`."""
+    parts = Path(read_name).parts
+    return str(Path(*parts[:2], "test", *parts[3:]))
 
 
 def class_reader(meta: dict, splits: pd.DataFrame, direction: str, scope: str) -> torch.nn.Module:
@@ -224,9 +236,11 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
         table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame(columns=GENERATED_COLUMNS)
         table[GENERATED_COLUMNS].to_parquet(tmp / "generated.parquet", index=False)
         if tables:
+            read_rows = table[table["split"] == READ_SPLIT]
+            read_names = dict(zip(read_rows["output_name"].map(plain_output_name), read_rows["output_name"]))
             write_png(tmp / "preview.png", comparison_sheet(table[table["split"] == "test"], tmp,
                                                             real_examples=real_examples_of(splits, direction),
-                                                            other_draws=draws))
+                                                            other_draws=draws, read_names=read_names))
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     for scope, counts in summary["scopes"].items():
         print(f"generate {direction}/{scope}: {counts['test']} test and {counts['train']} training inputs translated "
