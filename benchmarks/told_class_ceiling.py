@@ -21,8 +21,11 @@ it is printed for any run; the generator columns need one conditioned on the cla
 
 ``--judges N`` scores with N real-only classifiers of the target modality (seeds 0..N-1, as the classify stage
 trains three) and averages: GAN-test, the oracle, the real-only accuracies and so goal 3's threshold.
+``--scale-floors`` fits the feature reader once per floor (:data:`vtgen.core.readers.SCALE_FLOOR` by default; 0 is
+plain standardisation), one row each: how the floor moves the reading of the test inputs (Sixty-second round).
 
     python benchmarks/told_class_ceiling.py --run <run folder> --direction v2t --judges 3
+    python benchmarks/told_class_ceiling.py --run <run folder> --direction v2t --scale-floors 0 0.1 0.3
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ from vtgen.core.classifier import predict, wilson_interval
 from vtgen.core.conditioning import Conditioning
 from vtgen.core.domain import DIRECTIONS
 from vtgen.core.gan import to_model_range
-from vtgen.core.readers import fit_feature_reader
+from vtgen.core.readers import SCALE_FLOOR, fit_feature_reader
 from vtgen.core.translation import translate
 from vtgen.io.checkpoints import load_translator
 from vtgen.io.images import read_tiles
@@ -54,6 +57,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--truncation", type=float, default=1.0, help="psi of the latent codes (generate.truncation)")
     parser.add_argument("--judges", type=int, default=1, help="real-only classifiers (seeds 0..N-1) averaged over")
+    parser.add_argument("--scale-floors", type=float, nargs="+", default=[SCALE_FLOOR],
+                        help="the hand-crafted-feature reader's scale floor(s), one row each (0: plain standardisation)")
     args = parser.parse_args()
     root = args.run.resolve()
     torch.set_num_threads(args.threads)
@@ -80,13 +85,17 @@ def main() -> None:
 
     rows = splits[(splits["split"] == "train") & (splits["modality"] == source)].sort_values("path")
     train_inputs = read_tiles(list(rows["path"]), context["test_inputs"].shape[-1], root)
-    reader = fit_feature_reader(train_inputs, torch.tensor([index[c] for c in rows["class"]]), len(classes))
-    with torch.no_grad():
-        by_features = reader(context["test_inputs"]).argmax(dim=1).numpy()
+    train_labels = torch.tensor([index[c] for c in rows["class"]])
+    by_features = []
+    for floor in args.scale_floors:
+        reader = fit_feature_reader(train_inputs, train_labels, len(classes), scale_floor=floor)
+        with torch.no_grad():
+            by_features.append((f"hand-crafted features (scale floor {floor:g})",
+                                reader(context["test_inputs"]).argmax(dim=1).numpy()))
     network, _, _ = real_classifier(splits, source, params, root, classes)
     by_network = predict(network, resized(context["test_inputs"], params["classify"]["size"])).numpy()
     randomly = np.random.default_rng(0).integers(0, len(classes), len(truth))
-    readings = [("the truth", truth), ("classify's network", by_network), ("hand-crafted features", by_features)]
+    readings = [("the truth", truth), ("classify's network", by_network), *by_features]
     if kind == "inferred":  # the reader stored in the model file, as the generate stage reads
         reader_name = (own.classifier_settings or {}).get("reader", "network")
         by_own = own.probabilities(to_model_range(context["test_inputs"])).argmax(dim=1).numpy()
