@@ -131,15 +131,13 @@ def plain_output_name(read_name: str) -> str:
     return str(Path(*parts[:2], "test", *parts[3:]))
 
 
-def class_reader(meta: dict, splits: pd.DataFrame, direction: str, scope: str) -> torch.nn.Module:
+def class_reader(meta: dict, splits: pd.DataFrame, direction: str) -> torch.nn.Module:
     """The reader of :func:`read_class_outputs`: a hand-crafted-feature reader
-    (:func:`vtgen.core.readers.fit_feature_reader`) fitted on the scope's training inputs of the model's classes,
-    what ``conditioning: inferred`` with ``translation.inferred_reader: features`` would be told by."""
+    (:func:`vtgen.core.readers.fit_feature_reader`) fitted on the training inputs of the model's classes, what
+    ``conditioning: inferred`` with ``translation.inferred_reader: features`` would be told by."""
     conditioning = meta["conditioning"]
     train = splits[(splits["modality"] == DIRECTIONS[direction][0]) & (splits["split"] == "train")
                    & splits["class"].isin(conditioning.classes)].sort_values("path")
-    if scope != "all":
-        train = train[train["class"] == scope]
     return fit_feature_reader(read_tiles(list(train["path"]), meta["size"]),
                               conditioning.labels(list(train["class"])), len(conditioning.classes))
 
@@ -196,7 +194,7 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
             rows = select_inputs(splits, pairs, direction, scope, cfg["train_share"], cfg["seed"])
             rows["output_name"] = [f"images/{scope}/{split}/{cls}/{Path(path).stem}.png"
                                    for split, cls, path in zip(rows["split"], rows["class"], rows["input_path"])]
-            reader = class_reader(meta, splits, direction, scope) if reads_the_class(meta) else None
+            reader = class_reader(meta, splits, direction) if reads_the_class(meta) else None
             read_names, read_right = [], 0
             for start in tqdm(range(0, len(rows), cfg["batch_size"]), desc=f"generate {direction}/{scope}",
                               unit="batch", disable=not progress, mininterval=1.0):
