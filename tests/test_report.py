@@ -784,7 +784,7 @@ def test_gan_test_caveat_gives_the_figure_told_the_class_read_from_the_input():
     assert read_class_counts({"scopes": {"all": {"test": 120}}}) is None
     note = conditioned_gan_test_note("visual", summary, [{"direction": "t2v", "conditioning": "class"}], read)
     assert "0.479" in note and "0.254 [0.203, 0.313]" in note and "240 test translations" in note
-    assert "features reader reads from each input (its own class for 60 of 180)" in note and "goal 3" in note
+    assert "hand-crafted-feature reader reads from each input (its own class for 60 of 180)" in note and "goal 3" in note
     plain = conditioned_gan_test_note("visual", {k: v for k, v in summary.items() if k != "gan_test_read"},
                                       [{"direction": "t2v", "conditioning": "class"}], read)
     assert "0.254" not in plain and "goal 3" not in plain

@@ -246,7 +246,7 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
         read = counts.get("told_the_class_read")
         if read:
             print(f"generate {direction}/{scope}: the {read['inputs']} test inputs also translated told the class a "
-                  f"{read['reader']} reader reads from each (read right for {read['read_correctly']}), for goal 3's "
+                  f"hand-crafted-feature reader reads from each (read right for {read['read_correctly']}), for goal 3's "
                   f"GAN-test of a generator not told the class")
     return summary
 

@@ -263,7 +263,8 @@ def conditioned_gan_test_note(modality: str, summary: dict, runs: list[dict], re
     if told_read.get("final_mean") is None:
         return note
     low, high = told_read.get("interval") or (float("nan"), float("nan"))
-    reading = (f"the class a {read['reader']} reader reads from each input (its own class for "
+    reader = {"features": "hand-crafted-feature"}.get(read["reader"], read["reader"]) if read else ""
+    reading = (f"the class a {reader} reader reads from each input (its own class for "
                f"{read['read_correctly']} of {read['inputs']})" if read else "the class a reader reads from each input")
     return (f"{note}. Told instead {reading}, as a generator not told the class would be, its {told_read['images']} "
             f"test translations score a GAN-test of {told_read['final_mean']:.3f} [{low:.3f}, {high:.3f}]: the "
