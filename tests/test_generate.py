@@ -400,7 +400,6 @@ def test_run_train_records_the_preparation_of_its_training_data(tmp_path, monkey
     assert prep["model_size"] == 32 and prep["input_channels"] == 3  # pair_tables' tiles are random colour
 
 
-
 def coloured_class_pairs(tmp_path, monkeypatch) -> pd.DataFrame:
     """The small v2t pairs folder as class pairs, with tiles a feature reader can read: class a reddish, class b
     bluish, except b's test photo, which is reddish (so it is read as a). Returns the split table."""
@@ -422,8 +421,8 @@ def test_a_generator_told_the_class_also_translates_each_test_input_told_the_cla
     """Issue 24, goal 3 for a generator told the class: under the class-pair objective the stage also writes each
     test input translated told the class a feature reader (fitted on the training inputs) reads from it (split
     test_read, the input's true class), with the plain test outputs' latent codes, so an input read right gets the
-    identical image and one read wrong gets the other class's; the summary counts the reading. A pix2pix model told
-    the class, and a generator told nothing, write no such rows."""
+    identical image and one read wrong gets the other class's; the summary counts the reading, and the preview shows
+    them in a group of their own. A pix2pix model told the class writes no such rows."""
     splits = coloured_class_pairs(tmp_path, monkeypatch)
     assert list(splits.columns[:2]) == ["path", "class"]
     conditioning = Conditioning("class", ("a", "b"))
