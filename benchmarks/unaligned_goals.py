@@ -112,7 +112,8 @@ def goal_rows(goals: dict, classify: dict, conditioning: dict | None = None) -> 
         read = (classify.get(target) or {}).get("gan_test_read")  # the same model told the class read from its input
         if told and read is not None:
             ok = None if None in reals else read >= 0.8 * min(reals)
-            rows.append((direction, f"3 GAN-test ({target}), told the class read from the input", f"{read:.3g}",
+            entry = {"value": read, **((classify.get(target) or {}).get("gan_test_read_interval") or {})}
+            rows.append((direction, f"3 GAN-test ({target}), told the class read from the input", _fmt(entry),
                          threshold, _verdict(ok)))
         mem = {k: v for k, v in g.items() if k.startswith("memorisation_")}
         for name, entry in mem.items():
@@ -138,6 +139,12 @@ def main() -> None:
     classify = json.loads(metrics_path.read_text()).get("classify", {}) if metrics_path.is_file() else {}
     if not classify:
         print(f"note: {metrics_path} has no classify numbers: item 3 is n/a", file=sys.stderr)
+    for modality, entry in classify.items():  # the interval and n of gan_test_read, from the classify stage's summary
+        summary = args.run / "data/classify" / modality / "summary.json"
+        told_read = json.loads(summary.read_text()).get("gan_test_read") if summary.is_file() else None
+        if told_read and told_read.get("interval"):
+            entry["gan_test_read_interval"] = {"low": told_read["interval"][0], "high": told_read["interval"][1],
+                                               "n": told_read["images"]}
     conditioning = {}
     for direction in MODALITY:
         record = args.run / "models" / direction / "all" / "train.json"

@@ -130,6 +130,10 @@ def test_goal_3_counts_the_figure_told_the_class_read_for_a_model_told_the_class
         found = goal_rows({"t2v": {}}, {"visual": visual, "tactile": {"real": 0.25}}, {"t2v": conditioning})
         return {item: verdict for _, item, _, _, verdict in found if item.startswith("3 ")}
 
+    interval = {"gan_test_read": 0.211, "gan_test_read_interval": {"low": 0.165, "high": 0.267, "n": 240}}
+    found = goal_rows({"t2v": {}}, {"visual": {"real": 0.376, **interval}, "tactile": {"real": 0.263}}, {"t2v": "class"})
+    assert [measured for _, item, measured, _, _ in found if "read" in item] == ["0.211 [0.165, 0.267], n 240"]
+
     assert rows(0.254) == {"3 GAN-test (visual), told the class (class)": "n/a",
                            "3 GAN-test (visual), told the class read from the input": "PASS"}  # bar 0.2
     assert rows(0.19)["3 GAN-test (visual), told the class read from the input"] == "FAIL"
