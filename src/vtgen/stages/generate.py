@@ -125,12 +125,6 @@ def read_output_name(output_name: str) -> str:
     return str(Path(*parts[:2], READ_SPLIT, *parts[3:]))
 
 
-def plain_output_name(read_name: str) -> str:
-    """The inverse of :func:`read_output_name`."""
-    parts = Path(read_name).parts
-    return str(Path(*parts[:2], "test", *parts[3:]))
-
-
 def class_reader(meta: dict, splits: pd.DataFrame, direction: str) -> torch.nn.Module:
     """The reader of :func:`read_class_outputs`: a hand-crafted-feature reader
     (:func:`vtgen.core.readers.fit_feature_reader`) fitted on the training inputs of the model's classes, what
@@ -182,6 +176,7 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
     pairs = read_table(pairs_dir / f"{direction}.parquet", PAIR_COLUMNS, f"a {direction} pair table")
     splits = read_table(pairs_dir / "splits.parquet", SPLIT_COLUMNS, "the split table of the pairs stage")
     tables, summary, draws = [], {"direction": direction, "scopes": {}}, {}
+    read_of: dict[str, str] = {}  # a test output's name -> its name told the class read (read_class_outputs)
     with atomic_output_dir(out_dir) as tmp:
         for scope in params["translation"]["scope"]:
             status = _training_status(models_dir / scope)
@@ -195,7 +190,7 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
             rows["output_name"] = [f"images/{scope}/{split}/{cls}/{Path(path).stem}.png"
                                    for split, cls, path in zip(rows["split"], rows["class"], rows["input_path"])]
             reader = class_reader(meta, splits, direction) if reads_the_class(meta) else None
-            read_names, read_right = [], 0
+            read_right = 0
             for start in tqdm(range(0, len(rows), cfg["batch_size"]), desc=f"generate {direction}/{scope}",
                               unit="batch", disable=not progress, mininterval=1.0):
                 chunk = rows.iloc[start:start + cfg["batch_size"]]
@@ -206,9 +201,10 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
                 written = [(name, image.permute(1, 2, 0).numpy()) for name, image in zip(chunk["output_name"], outputs)]
                 if reader is not None and (chunk["split"] == "test").any():
                     images, right = read_class_outputs(generator, meta, reader, chunk, inputs, start, truncation)
-                    names = [read_output_name(n) for n in chunk.loc[chunk["split"] == "test", "output_name"]]
-                    written += list(zip(names, images))
-                    read_names, read_right = read_names + names, read_right + right
+                    plain = list(chunk.loc[chunk["split"] == "test", "output_name"])
+                    read_of.update((n, read_output_name(n)) for n in plain)
+                    written += list(zip((read_of[n] for n in plain), images))
+                    read_right += right
                 for name, image in written:
                     (tmp / name).parent.mkdir(parents=True, exist_ok=True)
                     write_png(tmp / name, image)
@@ -217,7 +213,8 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
             read_summary = None
             if reader is not None:
                 test_rows = rows[rows["split"] == "test"]
-                rows = pd.concat([rows, test_rows.assign(split=READ_SPLIT, output_name=read_names)], ignore_index=True)
+                told_read = test_rows.assign(split=READ_SPLIT, output_name=test_rows["output_name"].map(read_of))
+                rows = pd.concat([rows, told_read], ignore_index=True)
                 read_summary = {"reader": "features", "inputs": len(test_rows), "read_correctly": read_right,
                                 "read_accuracy": round(read_right / len(test_rows), 6) if len(test_rows) else None}
             rows["output_path"] = [str(out_dir / n) for n in rows["output_name"]]
@@ -225,8 +222,8 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
             tables.append(rows)
             summary["scopes"][scope] = {s: int((rows["split"] == s).sum()) for s in ("train", "test")}
             summary["scopes"][scope]["conditioning"] = meta["conditioning"].kind
-            summary["scopes"][scope]["with_ground_truth"] = int((rows["ground_truth_path"].loc[rows["split"] != READ_SPLIT]
-                                                                 != "").sum())
+            plain_rows = rows[rows["split"] != READ_SPLIT]
+            summary["scopes"][scope]["with_ground_truth"] = int((plain_rows["ground_truth_path"] != "").sum())
             if read_summary is not None:
                 summary["scopes"][scope]["told_the_class_read"] = read_summary
             if generator.latent and truncation != 1.0:  # the plain draw adds no key: the default's summary stays as it was
@@ -234,11 +231,9 @@ def run_generate(params: dict, direction: str, pairs_dir: str | Path, models_dir
         table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame(columns=GENERATED_COLUMNS)
         table[GENERATED_COLUMNS].to_parquet(tmp / "generated.parquet", index=False)
         if tables:
-            read_rows = table[table["split"] == READ_SPLIT]
-            read_names = dict(zip(read_rows["output_name"].map(plain_output_name), read_rows["output_name"]))
             write_png(tmp / "preview.png", comparison_sheet(table[table["split"] == "test"], tmp,
                                                             real_examples=real_examples_of(splits, direction),
-                                                            other_draws=draws, read_names=read_names))
+                                                            other_draws=draws, read_names=read_of))
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     for scope, counts in summary["scopes"].items():
         print(f"generate {direction}/{scope}: {counts['test']} test and {counts['train']} training inputs translated "
