@@ -402,3 +402,44 @@ def test_class_wise_kid_exposes_a_generator_that_draws_another_class():
 
     mean, low, high = mean_over_classes([1.0, 2.0, 6.0], [3.0, 0.0, 4.0])  # sqrt(9 + 16) / 3 = 5 / 3
     assert (mean, low, high) == pytest.approx((3.0, 3.0 - 1.96 * 5 / 3, 3.0 + 1.96 * 5 / 3), rel=1e-12)
+
+
+def _flat(values) -> torch.Tensor:
+    """uint8 N x 3 x 8 x 8 images, each one flat grey level."""
+    return torch.tensor(values, dtype=torch.uint8)[:, None, None, None].expand(-1, 3, 8, 8).contiguous()
+
+
+def test_brightness_check_counts_images_outside_their_class_range_and_names_the_classes():
+    """Class a's real training images lie at grey 200-220, class b's at 40-60. Generated a images at grey 150
+    (a grey field for a bright touch) are darker than every real a image; the check counts them, names class a
+    as drawn darker at the median, and warns, since the real held-out images stay inside their ranges. Generated
+    images inside the ranges pass with no class named."""
+    from vtgen.stages.score import BRIGHTNESS_FAMILY, brightness_direction, brightness_verdicts
+
+    classes = np.array(["a"] * 4 + ["b"] * 4)
+    train = _flat([200, 205, 215, 220, 40, 45, 55, 60])
+    held = _flat([210, 212, 214, 216, 50, 52, 54, 56])
+    groups = np.array([f"{c}/0" for c in classes])
+    dark = _flat([150, 150, 150, 210, 50, 50, 50, 50])
+    sets = {("generated", "all"): (dark, classes, groups), "real_train": (train, classes, groups),
+            "real_test": (held, classes, groups)}
+    table = brightness_direction("v2t", sets).set_index(["class", "candidate"])
+    assert table.loc[("a", "generated"), ["darker", "lighter", "outside", "n"]].tolist() == [3, 0, 3, 4]
+    assert table.loc[("a", "generated"), ["real_low", "real_high", "median"]].tolist() == [200, 220, 150]
+    assert table.loc[("b", "generated"), "outside"] == 0
+    assert table.loc[("(all)", "generated"), ["outside", "n", "share"]].tolist() == [3, 8, 3 / 8]
+    assert table.loc[("(all)", "real_heldout"), "outside"] == 0
+    (found,) = brightness_verdicts(brightness_direction("v2t", sets))
+    assert found["family"] == BRIGHTNESS_FAMILY and found["darker_classes"] == ["a"] and not found["lighter_classes"]
+    # 3 of 8 [0.14, 0.69] against 0 of 8 [0, 0.32]: the intervals overlap at n = 8, so not beyond the noise
+    assert found["status"] == "ok" and "within noise of" in found["text"] and "darker than" in found["text"]
+
+    many = np.array(["a"] * 40 + ["b"] * 40)
+    big = {("generated", "all"): (_flat([150] * 30 + [210] * 10 + [50] * 40), many, np.repeat("g", 80)),
+           "real_train": (train, classes, groups), "real_test": (_flat([210] * 40 + [50] * 40), many, np.repeat("g", 80))}
+    (found,) = brightness_verdicts(brightness_direction("v2t", big))
+    assert found["status"] == "warning" and found["generated"] == 30 / 80 and "above the real held-out" in found["text"]
+
+    inside = {**sets, ("generated", "all"): (held.clone(), classes, groups)}
+    (found,) = brightness_verdicts(brightness_direction("v2t", inside))
+    assert found["status"] == "ok" and found["generated"] == 0.0 and "than every real training image of the class at" not in found["text"]

@@ -84,6 +84,17 @@ def distribution_headline(distribution: pd.DataFrame, memorisation: pd.DataFrame
     return _compact(result)
 
 
+def brightness_headline(score_summary: dict, direction: str) -> dict:
+    """``brightness_outside``: the share of generated and of real held-out test images darker or lighter than every
+    real training image of their class (the score stage's brightness-range verdict); empty where it has none."""
+    found = next((v for v in score_summary.get("verdicts") or []
+                  if v.get("direction") == direction and v.get("metric") == "brightness"), None)
+    if found is None:
+        return {}
+    return {"brightness_outside": _compact({"generated": _number(found["generated"]),
+                                            "real_heldout": _number(found["real_heldout"])})}
+
+
 def classify_headline(entry: dict) -> dict:
     """Mean final-epoch test accuracy over seeds per setting, the GAN-test, the GAN-test as a share of the
     real-only test accuracy (``gan_test_vs_real``: how recognisable generated images are against real
@@ -148,6 +159,7 @@ def headline_metrics(data: dict) -> dict:
     goals = data["score_summary"].get("goals") or {}  # issue 24's numbers, each with its interval and n
     metrics = {d: _compact(ssim_headline(data["by_class"], d)
                            | distribution_headline(data["distribution"], data["memorisation"], d)
+                           | brightness_headline(data["score_summary"], d)
                            | {"goals": goals.get(d) or {}})
                for d in DIRECTIONS}
     metrics = _compact(metrics)

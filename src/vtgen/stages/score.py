@@ -81,6 +81,10 @@ DIFFERENCE_COLUMNS = ["direction", "scope", "view", "metric", "baseline", "value
                       "n_reference"]
 DIVERSITY_COLUMNS = ["direction", "class", "view", "ratio", "low", "high", "generated_spread", "real_spread", "n",
                      "n_real", "interval"]
+# per class: images whose brightness lies outside the class's real training images' range (brightness_direction)
+BRIGHTNESS_COLUMNS = ["direction", "class", "candidate", "outside", "n", "share", "low", "high", "median", "darker",
+                      "lighter", "real_low", "real_high"]
+BRIGHTNESS_FAMILY = "brightness range (pixels)"
 # a warning's reading where some class trained on one split group: copying and learning the class look alike there
 ONE_GROUP_CAVEAT = ("; at least one class has a single training group (one instance or session), so a generator that "
                     "learns that class can only reproduce that group's look, and held-out real images come from "
@@ -707,6 +711,84 @@ def diversity_direction(direction: str, sets: dict, cache: FeatureCache, seed: i
     return pd.DataFrame(rows, columns=DIVERSITY_COLUMNS)
 
 
+def image_brightness(images: torch.Tensor) -> np.ndarray:
+    """uint8 N x C x H x W -> float64 N: each image's mean pixel value over its channels and pixels (0-255)."""
+    return images.to(torch.float64).mean(dim=(1, 2, 3)).numpy() if len(images) else np.zeros(0)
+
+
+def brightness_direction(direction: str, sets: dict) -> pd.DataFrame:
+    """Brightness check of the pooled model's generated test images (BRIGHTNESS_COLUMNS). Per class, the range
+    (lowest to highest) of the mean pixel value (:func:`image_brightness`) of its real training images, the
+    images the generator learned the class from; then, for the generated test images and for the real held-out
+    images of the class (the reference: a new instance of a class may itself fall outside), how many lie below
+    it (``darker``), above it (``lighter``), their share ``outside`` / ``n`` with its 95% Wilson interval, and
+    their median brightness. An ``(all)`` row per candidate sums the classes. A generator that draws a class
+    darker or lighter than every real image of it (a grey field for a bright touch, a black ground for a red
+    floor) shows here where a pooled distribution metric only grows."""
+    key = _pooled_generated(sets)
+    candidates = {"generated": sets[key], "real_heldout": sets["real_test"]}
+    train = pd.Series(image_brightness(sets["real_train"][0])).groupby(sets["real_train"][1])
+    ranges = {name: (float(v.min()), float(v.max())) for name, v in train}
+    rows = []
+    for candidate, (images, classes, _) in candidates.items():
+        values, totals = image_brightness(images), {"outside": 0, "n": 0, "darker": 0, "lighter": 0}
+        classes = np.asarray(classes)
+        pooled = []
+        for name in sorted(set(classes) & set(ranges) & set(sets["real_test"][1]) & set(sets[key][1])):
+            low, high = ranges[name]
+            mine = values[classes == name]
+            darker, lighter = int((mine < low).sum()), int((mine > high).sum())
+            rows.append(_brightness_row(direction, name, candidate, darker, lighter, mine, low, high))
+            totals = {"outside": totals["outside"] + darker + lighter, "n": totals["n"] + len(mine),
+                      "darker": totals["darker"] + darker, "lighter": totals["lighter"] + lighter}
+            pooled.append(mine)
+        if totals["n"]:
+            rows.append(_brightness_row(direction, "(all)", candidate, totals["darker"], totals["lighter"],
+                                        np.concatenate(pooled), math.nan, math.nan))
+    return pd.DataFrame(rows, columns=BRIGHTNESS_COLUMNS)
+
+
+def _brightness_row(direction: str, name: str, candidate: str, darker: int, lighter: int, values: np.ndarray,
+                    low: float, high: float) -> dict:
+    share = (darker + lighter) / len(values)
+    share_low, share_high = wilson_interval(share, len(values))
+    return {"direction": direction, "class": name, "candidate": candidate, "outside": darker + lighter,
+            "n": len(values), "share": share, "low": share_low, "high": share_high, "median": float(np.median(values)),
+            "darker": darker, "lighter": lighter, "real_low": low, "real_high": high}
+
+
+def brightness_verdicts(brightness: pd.DataFrame) -> list[dict]:
+    """One verdict per direction from :func:`brightness_direction`'s ``(all)`` rows: ``warning`` when the generated
+    images' share outside their class's real brightness range lies above the real held-out images' share beyond
+    both 95% Wilson intervals, else ``ok``. The text names the classes whose generated median lies below (darker)
+    or above (lighter) every real training image of the class."""
+    found = []
+    for direction in sorted(set(brightness["direction"])):
+        mine = brightness[brightness["direction"] == direction]
+        overall = mine[mine["class"] == "(all)"].set_index("candidate")
+        if not {"generated", "real_heldout"} <= set(overall.index):
+            continue
+        gen, ref = overall.loc["generated"], overall.loc["real_heldout"]
+        worse = gen["low"] > ref["high"]
+        reading = "above" if worse else "within noise of" if gen["share"] > ref["share"] else "not above"
+        per_class = mine[(mine["candidate"] == "generated") & (mine["class"] != "(all)")]
+        darker = list(per_class.loc[per_class["median"] < per_class["real_low"], "class"])
+        lighter = list(per_class.loc[per_class["median"] > per_class["real_high"], "class"])
+        drawn = "".join(f"; {word} than every real training image of the class at the median: {', '.join(names)}"
+                        for word, names in (("darker", darker), ("lighter", lighter)) if names)
+        found.append({"direction": direction, "family": BRIGHTNESS_FAMILY, "metric": "brightness", "view": "pixels",
+                      "status": "warning" if worse else "ok", "generated": float(gen["share"]),
+                      "generated_interval": [float(gen["low"]), float(gen["high"])],
+                      "real_heldout": float(ref["share"]), "real_heldout_interval": [float(ref["low"]), float(ref["high"])],
+                      "n": int(gen["n"]), "n_real": int(ref["n"]), "darker_classes": darker, "lighter_classes": lighter,
+                      "text": f"{direction.upper()} {BRIGHTNESS_FAMILY}: {gen['share']:.3f} [{gen['low']:.3f}, "
+                              f"{gen['high']:.3f}] of generated test images are darker or lighter (mean pixel value) "
+                              f"than every real training image of their class ({reading} the real held-out share "
+                              f"{ref['share']:.3f} [{ref['low']:.3f}, {ref['high']:.3f}], 95% Wilson; n = "
+                              f"{int(gen['n'])} generated, {int(ref['n'])} real){drawn}"})
+    return found
+
+
 def _num(value) -> float | None:
     """A finite number rounded to 6 decimals (metrics.json compares exactly), else None."""
     return None if value is None or not math.isfinite(float(value)) else round(float(value), 6)
@@ -897,7 +979,7 @@ def _greyscale(images: torch.Tensor) -> bool:
 def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, out_dir: str | Path,
               classify_dir: str | Path | None = None) -> dict:
     """Score every direction under ``generated_root``; write ``scores`` (per image), ``by_class``,
-    ``distribution``, ``memorisation``, ``diversity`` and ``differences`` (parquet and CSV) and ``summary.json`` (with
+    ``distribution``, ``memorisation``, ``diversity``, ``differences`` and ``brightness`` (parquet and CSV) and ``summary.json`` (with
     ``goals``: :func:`goal_metrics`) to ``out_dir``. Reads ``params["score"]``: ``batch_size``,
     ``max_per_class`` and ``fid_resamples``.
 
@@ -910,7 +992,8 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
     seed = SCORE_SEED
     splits = read_table(pairs_dir / "splits.parquet", SPLIT_COLUMNS, "the split table of the pairs stage")
     settings = params["score"]
-    tables, distributions, differences, memorised, diverse, notes, not_scored, facts = [], [], [], [], [], [], {}, {}
+    tables, distributions, differences, memorised, diverse, bright = [], [], [], [], [], []
+    notes, not_scored, facts = [], {}, {}
     timings = {"ssim": 0.0, "distribution": 0.0, "memorisation and diversity": 0.0}
     tiles = TileReader()
     for direction in DIRECTIONS:
@@ -935,6 +1018,7 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
         started = time.perf_counter()
         memorised.append(memorisation_direction(direction, sets, cache))
         diverse.append(diversity_direction(direction, sets, cache, seed))
+        bright.append(brightness_direction(direction, sets))
         timings["memorisation and diversity"] += time.perf_counter() - started
         facts[direction]["images_encoded"] = dict(cache.encoded)
         facts[direction]["greyscale"] = _greyscale(sets["real_test"][0])
@@ -945,9 +1029,10 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
     memorisation = pd.concat(memorised, ignore_index=True) if memorised else pd.DataFrame(columns=MEMORISATION_COLUMNS)
     diversity = pd.concat(diverse, ignore_index=True) if diverse else pd.DataFrame(columns=DIVERSITY_COLUMNS)
     paired = pd.concat(differences, ignore_index=True) if differences else pd.DataFrame(columns=DIFFERENCE_COLUMNS)
+    brightness = pd.concat(bright, ignore_index=True) if bright else pd.DataFrame(columns=BRIGHTNESS_COLUMNS)
     generated_rows = scores.loc[scores["candidate"] == "generated", "image"]
     size = _image_side(generated_rows.iloc[0]) if len(generated_rows) else None
-    found = verdicts(distribution, memorisation, paired) if tables else []
+    found = verdicts(distribution, memorisation, paired) + brightness_verdicts(brightness) if tables else []
     summary = {
         "synthetic": params["dataset"]["source"] == "synthetic",
         "image_size": size,
@@ -965,7 +1050,8 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
     }
     with atomic_output_dir(out_dir) as tmp:
         for name, table in (("scores", scores), ("by_class", classes_table), ("distribution", distribution),
-                            ("memorisation", memorisation), ("diversity", diversity), ("differences", paired)):
+                            ("memorisation", memorisation), ("diversity", diversity), ("differences", paired),
+                            ("brightness", brightness)):
             table.to_parquet(tmp / f"{name}.parquet", index=False)
             table.to_csv(tmp / f"{name}.csv", index=False, float_format="%.6f")
         (tmp / "summary.json").write_text(json.dumps(_plain(summary), indent=2, allow_nan=False) + "\n")
