@@ -74,7 +74,7 @@ from vtgen.io.images import labelled_sheet, read_tiles, write_png
 from vtgen.io.params import model_settings, validate_params, with_recipe
 from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
 from vtgen.stages.generate import translate
-from vtgen.stages.score import KID_SUBSETS, kid_subset_size, mean_over_classes
+from vtgen.stages.score import KID_SUBSETS, brightness_direction, kid_subset_size, mean_over_classes
 from vtgen.stages.train import (build_conditioning, build_guide, build_referee, load_pair_data, objective_settings,
                                 output_settings, pairs_in, resolve_conditioning, resolve_objective, train_translator, with_frame_views)
 from translation_quality import parse_variant, target_of  # the same name:key=value;... variants (benchmarks/ is on sys.path)
@@ -262,8 +262,21 @@ def goal_numbers(generated: torch.Tensor, classes: np.ndarray, context: dict) ->
         "fixed_share": fixed_share(generated),
         "concentration": float(detail_concentration(generated.float())),
         "overlap": mean_detail_overlap(generated),
+        "brightness_outside": brightness_outside(generated, classes, context),
     }
     return out
+
+
+def brightness_outside(generated: torch.Tensor, classes: np.ndarray, context: dict) -> float:
+    """Share of ``generated`` darker or lighter than every real training target of its class (the score stage's
+    :func:`vtgen.stages.score.brightness_direction`, its ``(all)`` row)."""
+    no_groups = lambda n: np.zeros(n, dtype=object)  # noqa: E731 (the check reads no groups)
+    sets = {("generated", "all"): (generated, np.asarray(classes), no_groups(len(generated))),
+            "real_train": (context["train_targets"], context["train_target_classes"], no_groups(len(context["train_targets"]))),
+            "real_test": (context["test_targets"], context["test_target_classes"], no_groups(len(context["test_targets"])))}
+    table = brightness_direction("-", sets)
+    overall = table[(table["class"] == "(all)") & (table["candidate"] == "generated")]
+    return float(overall["share"].iloc[0]) if len(overall) else float("nan")
 
 
 def classwise_kid(features: torch.Tensor, classes: np.ndarray, real: torch.Tensor, real_classes: np.ndarray):
@@ -320,7 +333,7 @@ def row(name: str, seed, r: dict) -> str:
     return (f"| {name} | {seed} | {r['n']} | {ci(r['diversity_pixels'])} | {ci(r['diversity_features'])} | "
             f"{r['prdc']['recall']:.2f} / {r['prdc']['coverage']:.2f} | {r['fid']:.1f} | "
             f"{k[0]:.4f} ± {1.96 * k[1]:.4f} | {c[0]:.4f} [{c[1]:.4f}, {c[2]:.4f}] | {r['gan_test']:.3f} [{low:.3f}, {high:.3f}] | {r['gan_test_blurred']:.3f} | "
-            f"{r['memorisation']:.3f} | {r['edge_outliers']:.3f} | {r['spectrum']:.3f} | {r['fixed_spikes']} | {r['fixed_share']:.3f} | {r['concentration']:.2f} | {r['overlap']:.4f} | {r.get('seconds', 0):.0f} |")
+            f"{r['memorisation']:.3f} | {r['edge_outliers']:.3f} | {r['spectrum']:.3f} | {r['fixed_spikes']} | {r['fixed_share']:.3f} | {r['concentration']:.2f} | {r['overlap']:.4f} | {r['brightness_outside']:.3f} | {r.get('seconds', 0):.0f} |")
 
 
 def main() -> None:
@@ -358,7 +371,7 @@ def main() -> None:
           f"input {in_acc:.3f} (n = {in_n}); GAN-test goal >= {0.8 * min(acc, in_acc):.3f}", flush=True)
     header = ("| variant | seed | n | diversity pixels [95%] | diversity features [95%] | recall / coverage | FID | "
               "KID ± 95% | class-wise KID [95%] | GAN-test [95%] | GAN-test, blurred | memorisation | edge outliers | "
-              "spectrum distance | fixed spikes | fixed share | concentration | detail overlap | train s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+              "spectrum distance | fixed spikes | fixed share | concentration | detail overlap | brightness outside | train s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [row(name, "-", r) for name, r in context["references"].items()]
     if args.model:
         generator, meta = load_translator(args.model)

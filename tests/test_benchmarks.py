@@ -139,3 +139,18 @@ def test_goal_3_counts_the_figure_told_the_class_read_for_a_model_told_the_class
     assert rows(0.19)["3 GAN-test (visual), told the class read from the input"] == "FAIL"
     assert rows(None) == {"3 GAN-test (visual), told the class (class)": "n/a"}
     assert rows(0.19, "none") == {"3 GAN-test (visual)": "PASS"}  # its own GAN-test, 0.479
+
+
+def test_the_ablation_counts_outputs_outside_their_class_brightness_range(monkeypatch):
+    """The ablation's brightness column is the score stage's check: of four outputs of class a (real training
+    targets at grey 200 and 220), one at 150 and one at 240 lie outside, so the share is 0.5."""
+    import numpy as np
+    import torch
+
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    from unaligned_ablation import brightness_outside
+
+    flat = lambda values: torch.tensor(values, dtype=torch.uint8)[:, None, None, None].expand(-1, 3, 4, 4)  # noqa: E731
+    context = {"train_targets": flat([200, 220]), "train_target_classes": np.array(["a", "a"]),
+               "test_targets": flat([210]), "test_target_classes": np.array(["a"])}
+    assert brightness_outside(flat([150, 205, 215, 240]), np.array(["a"] * 4), context) == 0.5
