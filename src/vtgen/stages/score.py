@@ -730,21 +730,20 @@ def brightness_direction(direction: str, sets: dict) -> pd.DataFrame:
     train = pd.Series(image_brightness(sets["real_train"][0])).groupby(sets["real_train"][1])
     ranges = {name: (float(v.min()), float(v.max())) for name, v in train}
     rows = []
+    shared = sorted(set(ranges) & set(sets["real_test"][1]) & set(sets[key][1]))  # classes both candidates have
     for candidate, (images, classes, _) in candidates.items():
-        values, totals = image_brightness(images), {"outside": 0, "n": 0, "darker": 0, "lighter": 0}
-        classes = np.asarray(classes)
-        pooled = []
-        for name in sorted(set(classes) & set(ranges) & set(sets["real_test"][1]) & set(sets[key][1])):
+        values, classes = image_brightness(images), np.asarray(classes)
+        class_rows = []
+        for name in shared:
             low, high = ranges[name]
             mine = values[classes == name]
-            darker, lighter = int((mine < low).sum()), int((mine > high).sum())
-            rows.append(_brightness_row(direction, name, candidate, darker, lighter, mine, low, high))
-            totals = {"outside": totals["outside"] + darker + lighter, "n": totals["n"] + len(mine),
-                      "darker": totals["darker"] + darker, "lighter": totals["lighter"] + lighter}
-            pooled.append(mine)
-        if totals["n"]:
-            rows.append(_brightness_row(direction, "(all)", candidate, totals["darker"], totals["lighter"],
-                                        np.concatenate(pooled), math.nan, math.nan))
+            class_rows.append(_brightness_row(direction, name, candidate, int((mine < low).sum()),
+                                              int((mine > high).sum()), mine, low, high))
+        if class_rows:
+            pooled = np.concatenate([values[classes == name] for name in shared])
+            class_rows.append(_brightness_row(direction, "(all)", candidate, sum(r["darker"] for r in class_rows),
+                                              sum(r["lighter"] for r in class_rows), pooled, math.nan, math.nan))
+        rows += class_rows
     return pd.DataFrame(rows, columns=BRIGHTNESS_COLUMNS)
 
 
