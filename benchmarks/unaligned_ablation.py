@@ -26,8 +26,9 @@ here on the real training images of the run with the classify stage's settings):
 * spectrum distance: the score stage's power-spectrum distance (:func:`vtgen.core.distribution.spectrum_distance`,
   decades of power) of the set against the real training targets; smooth outputs that lack a sensor's grain show here;
 * fixed spikes: interior pixel positions (2 px in from the border) where the mean over the set of |grey − its 3 x 3
-  median| is above 3 x the real training targets' largest (:func:`spike_map`): dots drawn at the same place in every
-  output (a lattice of one-pixel spikes), which no real image has and the distribution metrics barely see.
+  median| is above 3 x the real training targets' largest (the score stage's fixed-dot check,
+  :func:`vtgen.stages.score.dot_threshold` and :func:`vtgen.core.distribution.dot_map`): dots drawn at the same place
+  in every output (a lattice of one-pixel spikes), which no real image has and the distribution metrics barely see.
 * fixed share: the share of the set's fine-detail energy (each pixel minus its 3 x 3 mean) that the set's mean keeps
   (:func:`fixed_share`): about 1/n for detail at independent places, 1 for a pattern every image has with one sign.
 * concentration: :func:`vtgen.core.translator.detail_concentration` over the set (what ``class_gan.fixed_pattern``
@@ -62,7 +63,7 @@ import torch.nn.functional as F
 import yaml
 
 from vtgen.core.classifier import predict, train_classifier, wilson_interval
-from vtgen.core.distribution import (classifier_encoder, diversity_ratio, fid, flat_colour_set, grey_pixels,
+from vtgen.core.distribution import (classifier_encoder, diversity_ratio, dot_map, fid, flat_colour_set, grey_pixels,
                                      image_features, kid, mean_image_set, median_interval, memorisation, prdc_scores,
                                      spectrum_distance)
 from vtgen.core.domain import DIRECTIONS
@@ -74,7 +75,7 @@ from vtgen.io.images import labelled_sheet, read_tiles, write_png
 from vtgen.io.params import model_settings, validate_params, with_recipe
 from vtgen.io.tables import PAIR_COLUMNS, read_table, SPLIT_COLUMNS
 from vtgen.stages.generate import translate
-from vtgen.stages.score import KID_SUBSETS, brightness_direction, kid_subset_size, mean_over_classes
+from vtgen.stages.score import KID_SUBSETS, brightness_direction, dot_threshold, kid_subset_size, mean_over_classes
 from vtgen.stages.train import (build_conditioning, build_guide, build_referee, load_pair_data, objective_settings,
                                 output_settings, pairs_in, resolve_conditioning, resolve_objective, train_translator, with_frame_views)
 from translation_quality import parse_variant, target_of  # the same name:key=value;... variants (benchmarks/ is on sys.path)
@@ -206,16 +207,6 @@ def edge_gap(images: torch.Tensor, strip: int = 4) -> np.ndarray:
     return gaps.max(dim=1).values.numpy()
 
 
-def spike_map(images: torch.Tensor, border: int = 2) -> torch.Tensor:
-    """Per pixel position of uint8 ``N x 3 x S x S`` images, the mean over the N images of |g − m|: g the grey (channel
-    mean) and m its 3 x 3 median (replicated edges); ``border`` px are cut from each side (the median's edge effects)."""
-    grey = images.float().mean(dim=1, keepdim=True)
-    n, _, h, w = grey.shape
-    median = F.unfold(F.pad(grey, (1, 1, 1, 1), mode="replicate"), 3).median(dim=1).values.view(n, h, w)
-    residual = (grey[:, 0] - median).abs().mean(dim=0)
-    return residual[border:-border, border:-border]
-
-
 def fixed_share(images: torch.Tensor) -> float:
     """Σₚ m(p)² / Σₚ mean_n h_n(p)², h = :func:`vtgen.core.translator.fine_detail` of ``images`` (N x C x H x W) and m its
     mean over the N images: the share of the fine-detail energy at the same place with the same sign in every image."""
@@ -258,7 +249,7 @@ def goal_numbers(generated: torch.Tensor, classes: np.ndarray, context: dict) ->
         "memorisation": memorisation(features, real_train, real_test).rate,
         "edge_outliers": float((edge_gap(generated) > context["edge_threshold"]).mean()),
         "spectrum": spectrum_distance(context["train_targets"], generated),
-        "fixed_spikes": int((spike_map(generated) > context["spike_threshold"]).sum()),
+        "fixed_spikes": int((dot_map(generated) > context["spike_threshold"]).sum()),
         "fixed_share": fixed_share(generated),
         "concentration": float(detail_concentration(generated.float())),
         "overlap": mean_detail_overlap(generated),
@@ -315,7 +306,7 @@ def prepare_context(params, pairs, splits, direction, root) -> dict:
                "test_target_classes": test_target_classes, "test_inputs": test_inputs,
                "test_input_classes": test_input_classes,
                "edge_threshold": float(np.quantile(edge_gap(train_targets), 0.99)),
-               "spike_threshold": 3 * float(spike_map(train_targets).max()),
+               "spike_threshold": dot_threshold(train_targets),
                "train_features": image_features(encoder, resized(train_targets, side)),
                "test_features": image_features(encoder, resized(test_targets, side))}
     references = {"real held-out": (test_targets, test_target_classes),

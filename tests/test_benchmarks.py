@@ -30,23 +30,6 @@ def test_every_benchmark_script_is_found():
     assert len(SCRIPTS) >= 20 and any(p.name == "unaligned_ablation.py" for p in SCRIPTS)
 
 
-def test_spike_map_finds_a_dot_at_one_place_in_every_image_not_dots_that_move():
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    import torch
-    from unaligned_ablation import spike_map
-
-    generator = torch.Generator().manual_seed(0)
-    base = torch.randint(100, 140, (16, 3, 32, 32), generator=generator).to(torch.uint8)  # grain, no dots
-    fixed, moving = base.clone(), base.clone()
-    fixed[:, :, 10, 20] = 255                     # one dot, same place in all 16 images
-    for i in range(16):
-        moving[i, :, 4 + i, 6 + i] = 255           # one dot per image, each at its own place
-    threshold = 3 * float(spike_map(base).max())
-    assert int((spike_map(fixed) > threshold).sum()) == 1
-    assert spike_map(fixed)[10 - 2, 20 - 2] > threshold  # reported at the dot's place, border of 2 px cut
-    assert int((spike_map(moving) > threshold).sum()) == 0
-
-
 @pytest.mark.parametrize("antialias", [False, True])
 def test_the_probe_rebuilds_a_checkpoints_discriminator_as_trained(antialias):
     """discriminator_probe reads the shape of the projection discriminator (width, depth, kernel, classes, whether it

@@ -443,3 +443,37 @@ def test_brightness_check_counts_images_outside_their_class_range_and_names_the_
     inside = {**sets, ("generated", "all"): (held.clone(), classes, groups)}
     (found,) = brightness_verdicts(brightness_direction("v2t", inside))
     assert found["status"] == "ok" and found["generated"] == 0.0 and "than every real training image of the class at" not in found["text"]
+
+
+def test_fixed_dot_check_warns_on_a_dot_lattice_in_every_output_not_on_grain():
+    """Real training and held-out touches are grain (grey 100-139 at random); generated outputs with a lattice of
+    four dots drawn at the same places in every image give 4 dots against the held-out images' 0, beyond both
+    bootstrap intervals: a warning. Outputs that are grain like the real ones pass with 0. Near-flat real images
+    keep the threshold at DOT_FLOOR."""
+    from vtgen.core.distribution import dot_map
+    from vtgen.stages.score import DOT_FLOOR, DOTS_FAMILY, dot_threshold, fixed_dots_direction, fixed_dots_verdicts
+
+    def grain(count, seed):
+        generator = torch.Generator().manual_seed(seed)
+        return torch.randint(100, 140, (count, 1, 24, 24), generator=generator).to(torch.uint8).expand(-1, 3, -1, -1).contiguous()
+
+    classes = np.array(["a", "b"] * 20)
+    groups = np.array([f"{c}/0" for c in classes])
+    lattice = grain(40, 2)
+    lattice[:, :, 6::6, 6::6] = 250   # 3 x 3 = 9 positions, 6 px apart, in every output
+    sets = {("generated", "all"): (lattice, classes, groups), "real_train": (grain(40, 0), classes, groups),
+            "real_test": (grain(40, 1), classes, groups)}
+    table = fixed_dots_direction("v2t", sets, seed=0).set_index("candidate")
+    assert table.loc["generated", ["dots", "low", "high", "n"]].tolist() == [9, 9, 9, 40]
+    assert table.loc["real_heldout", ["dots", "low", "high"]].tolist() == [0, 0, 0]
+    assert table.loc["generated", "threshold"] == pytest.approx(3 * float(dot_map(grain(40, 0)).max()))
+    (found,) = fixed_dots_verdicts(fixed_dots_direction("v2t", sets, seed=0))
+    assert found["family"] == DOTS_FAMILY and found["status"] == "warning" and found["generated"] == 9
+    assert "above the real held-out count 0" in found["text"]
+
+    plain = {**sets, ("generated", "all"): (grain(40, 3), classes, groups)}
+    (found,) = fixed_dots_verdicts(fixed_dots_direction("v2t", plain, seed=0))
+    assert found["status"] == "ok" and found["generated"] == 0 and "not above" in found["text"]
+
+    flat = torch.full((4, 3, 24, 24), 128, dtype=torch.uint8)
+    assert dot_threshold(flat) == DOT_FLOOR

@@ -84,15 +84,21 @@ def distribution_headline(distribution: pd.DataFrame, memorisation: pd.DataFrame
     return _compact(result)
 
 
-def brightness_headline(score_summary: dict, direction: str) -> dict:
-    """``brightness_outside``: the share of generated and of real held-out test images darker or lighter than every
-    real training image of their class (the score stage's brightness-range verdict); empty where it has none."""
-    found = next((v for v in score_summary.get("verdicts") or []
-                  if v.get("direction") == direction and v.get("metric") == "brightness"), None)
-    if found is None:
-        return {}
-    return {"brightness_outside": _compact({"generated": _number(found["generated"]),
-                                            "real_heldout": _number(found["real_heldout"])})}
+# the score stage's image checks: verdict metric -> metrics.json key
+CHECK_KEYS = {"brightness": "brightness_outside", "fixed_dots": "fixed_dots"}
+
+
+def checks_headline(score_summary: dict, direction: str) -> dict:
+    """The score stage's image checks, generated beside real held-out: ``brightness_outside`` (the share of test
+    images darker or lighter than every real training image of their class) and ``fixed_dots`` (pixel positions with
+    a dot at the same place in every image); a key is left out where its verdict is missing."""
+    found = {}
+    for verdict in score_summary.get("verdicts") or []:
+        key = CHECK_KEYS.get(verdict.get("metric"))
+        if key and verdict.get("direction") == direction:
+            found[key] = _compact({"generated": _number(verdict["generated"]),
+                                   "real_heldout": _number(verdict["real_heldout"])})
+    return found
 
 
 def classify_headline(entry: dict) -> dict:
@@ -159,7 +165,7 @@ def headline_metrics(data: dict) -> dict:
     goals = data["score_summary"].get("goals") or {}  # issue 24's numbers, each with its interval and n
     metrics = {d: _compact(ssim_headline(data["by_class"], d)
                            | distribution_headline(data["distribution"], data["memorisation"], d)
-                           | brightness_headline(data["score_summary"], d)
+                           | checks_headline(data["score_summary"], d)
                            | {"goals": goals.get(d) or {}})
                for d in DIRECTIONS}
     metrics = _compact(metrics)
