@@ -27,7 +27,7 @@ here on the real training images of the run with the classify stage's settings):
   decades of power) of the set against the real training targets; smooth outputs that lack a sensor's grain show here;
 * fixed spikes: interior pixel positions (2 px in from the border) where the mean over the set of |grey − its 3 x 3
   median| is above 3 x the real training targets' largest (the score stage's fixed-dot check,
-  :func:`vtgen.stages.score.dot_threshold` and :func:`vtgen.core.distribution.dot_map`): dots drawn at the same place
+  :func:`vtgen.stages.score.dot_threshold` and :func:`vtgen.core.dots.dot_map`): dots drawn at the same place
   in every output (a lattice of one-pixel spikes), which no real image has and the distribution metrics barely see.
 * fixed share: the share of the set's fine-detail energy (each pixel minus its 3 x 3 mean) that the set's mean keeps
   (:func:`fixed_share`): about 1/n for detail at independent places, 1 for a pattern every image has with one sign.
@@ -63,10 +63,11 @@ import torch.nn.functional as F
 import yaml
 
 from vtgen.core.classifier import predict, train_classifier, wilson_interval
-from vtgen.core.distribution import (classifier_encoder, diversity_ratio, dot_map, fid, flat_colour_set, grey_pixels,
+from vtgen.core.distribution import (classifier_encoder, diversity_ratio, fid, flat_colour_set, grey_pixels,
                                      image_features, kid, mean_image_set, median_interval, memorisation, prdc_scores,
                                      spectrum_distance)
 from vtgen.core.domain import DIRECTIONS
+from vtgen.core.dots import dot_map
 from vtgen.core.gan import to_model_range
 from vtgen.core.referee import at_side as resized  # area-resized uint8 tiles at the classifier's side
 from vtgen.core.translator import detail_concentration, detail_overlap, fine_detail

@@ -450,7 +450,7 @@ def test_fixed_dot_check_warns_on_a_dot_lattice_in_every_output_not_on_grain():
     four dots drawn at the same places in every image give 4 dots against the held-out images' 0, beyond both
     bootstrap intervals: a warning. Outputs that are grain like the real ones pass with 0. Near-flat real images
     keep the threshold at DOT_FLOOR."""
-    from vtgen.core.distribution import dot_map
+    from vtgen.core.dots import dot_map
     from vtgen.stages.score import DOT_FLOOR, DOTS_FAMILY, dot_threshold, fixed_dots_direction, fixed_dots_verdicts
 
     def grain(count, seed):

@@ -18,8 +18,6 @@ image sets instead, and punish a set that lacks texture:
   (Naeem et al. 2020), as the authors' ``prdc`` package defines them;
 * :func:`memorisation`: are generated images closer to the training images than held-out real
   images are?
-* :func:`dot_map`, :func:`fixed_dots`: one-pixel dots drawn at the same place in every image (a
-  decoder's lattice), which the feature metrics barely see;
 * :func:`gaussian_blur`, :func:`flat_colour_set`, :func:`mean_image_set`: the trivial baselines.
 
 Image inputs are uint8 tensors ``N x 3 x H x W`` (greyscale as three equal channels); feature
@@ -1032,71 +1030,6 @@ def median_interval(values, resamples: int = 1000, seed: int = 0, level: float =
     tail = (1 - level) / 2
     low, high = np.quantile(draws, [tail, 1 - tail])
     return median, float(low), float(high)
-
-
-# --------------------------------------------------------------------------- fixed dots
-
-DOT_BORDER = 2  # px cut from each side of a dot map: the 3 x 3 median's replicated edges
-DOT_CHUNK = 256  # images per block of per-pixel residuals (N x 9 x H x W floats at once)
-
-
-def _dot_residual_blocks(images: torch.Tensor, border: int = DOT_BORDER):
-    """Yield (start, float32 ``n x P`` array) per block of :data:`DOT_CHUNK` uint8 images: each image's
-    |g − m| at its P interior pixels, g its grey (channel mean) and m g's 3 x 3 median (OpenCV's; the border cut
-    leaves only pixels whose whole 3 x 3 neighbourhood lies inside the image)."""
-    import cv2  # imported here: the module stays quick to import
-
-    for start in range(0, len(images), DOT_CHUNK):
-        grey = images[start:start + DOT_CHUNK].float().mean(dim=1).numpy()
-        median = np.stack([cv2.medianBlur(g, 3) for g in grey])
-        h, w = grey.shape[-2:]
-        residual = np.abs(grey - median)[:, border:h - border, border:w - border]
-        yield start, residual.reshape(len(grey), -1)
-
-
-def dot_map(images: torch.Tensor, border: int = DOT_BORDER) -> np.ndarray:
-    """uint8 ``N x 3 x H x W`` (N >= 1, H, W > 2 ``border``) -> float64 ``(H − 2 border) x (W − 2 border)``: the mean
-    over the images of |grey − its 3 x 3 median| per pixel position. A one-pixel dot drawn at the same place in
-    every image (a lattice of the decoder's upsampling) stays in the mean; texture at independent places averages out."""
-    _check_images(images, "images")
-    if len(images) == 0 or min(images.shape[-2:]) <= 2 * border:
-        raise ValueError(f"a dot map needs at least one image larger than {2 * border} px, got {tuple(images.shape)}")
-    total = sum(block.sum(axis=0, dtype=np.float64) for _, block in _dot_residual_blocks(images, border))
-    h, w = images.shape[-2:]
-    return (total / len(images)).reshape(h - 2 * border, w - 2 * border)
-
-
-@dataclass(frozen=True)
-class FixedDots:
-    """Pixel positions whose :func:`dot_map` value exceeds a threshold, with a 95% bootstrap interval; see :func:`fixed_dots`."""
-
-    count: int
-    low: float
-    high: float
-    peak: float
-    n: int
-
-
-def fixed_dots(images: torch.Tensor, threshold: float, resamples: int = 200, seed: int = 0,
-               level: float = 0.95) -> FixedDots:
-    """How many interior pixel positions of ``images`` (uint8 ``N x 3 x H x W``) have a :func:`dot_map` value above
-    ``threshold`` (grey levels): dots at fixed places. The interval is a percentile bootstrap over images (``resamples``
-    draws with replacement, numpy generator seeded with ``seed``), each draw's map a weighted mean of the images'
-    residuals; ``peak`` is the map's largest value."""
-    n = len(images)
-    _check_images(images, "images")
-    if n == 0:
-        raise ValueError("fixed dots need at least one image")
-    weights = np.random.default_rng(seed).multinomial(n, np.full(n, 1.0 / n), size=int(resamples)).astype(np.float32)
-    total, drawn = None, None
-    for start, block in _dot_residual_blocks(images):
-        part, boot = block.sum(axis=0, dtype=np.float64), weights[:, start:start + len(block)] @ block
-        total, drawn = (part, boot) if total is None else (total + part, drawn + boot)
-    mean = total / n
-    draws = ((drawn / n) > threshold).sum(axis=1)
-    tail = (1 - level) / 2
-    low, high = (float(v) for v in np.quantile(draws, [tail, 1 - tail])) if len(draws) else (math.nan, math.nan)
-    return FixedDots(int((mean > threshold).sum()), low, high, float(mean.max()), n)
 
 
 # --------------------------------------------------------------------------- baselines

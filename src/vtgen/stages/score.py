@@ -59,6 +59,7 @@ from vtgen.io.tables import GENERATED_COLUMNS
 from vtgen.io.images import atomic_output_dir
 from vtgen.io.tables import read_table
 from vtgen.core import distribution as dist
+from vtgen.core import dots
 from vtgen.core.classifier import wilson_interval
 from vtgen.core.metrics import bootstrap_interval, colour_ssim, grey_ssim, pairwise_colour_ssim, psnr
 from vtgen.io.classifiers import load_classifier
@@ -796,13 +797,13 @@ def brightness_verdicts(brightness: pd.DataFrame) -> list[dict]:
 
 def dot_threshold(real_train: torch.Tensor) -> float:
     """Grey levels above which a set's dot map value counts as a fixed dot: DOT_FACTOR x the largest value of the
-    real training images' own :func:`vtgen.core.distribution.dot_map`, at least DOT_FLOOR."""
-    return max(DOT_FACTOR * float(dist.dot_map(real_train).max()), DOT_FLOOR)
+    real training images' own :func:`vtgen.core.dots.dot_map`, at least DOT_FLOOR."""
+    return max(DOT_FACTOR * float(dots.dot_map(real_train).max()), DOT_FLOOR)
 
 
 def fixed_dots_direction(direction: str, sets: dict, seed: int) -> pd.DataFrame:
     """Fixed-dot check of the pooled model's generated test images (DOTS_COLUMNS). The dot map
-    (:func:`vtgen.core.distribution.dot_map`) is the mean over a set of each image's |grey − 3 x 3 median| per
+    (:func:`vtgen.core.dots.dot_map`) is the mean over a set of each image's |grey − 3 x 3 median| per
     pixel: one-pixel dots drawn at the same place in every output (a lattice left by the decoder's upsampling)
     stay in it, texture at independent places averages out. ``threshold`` is DOT_FACTOR x the largest value of
     the real training images' map (:func:`dot_threshold`); ``dots`` counts the positions above it for the
@@ -811,7 +812,7 @@ def fixed_dots_direction(direction: str, sets: dict, seed: int) -> pd.DataFrame:
     threshold = dot_threshold(sets["real_train"][0])
     rows = []
     for candidate, images in (("generated", sets[_pooled_generated(sets)][0]), ("real_heldout", sets["real_test"][0])):
-        found = dist.fixed_dots(images, threshold, DOT_RESAMPLES, seed)
+        found = dots.fixed_dots(images, threshold, DOT_RESAMPLES, seed)
         rows.append({"direction": direction, "candidate": candidate, "dots": found.count, "low": found.low,
                      "high": found.high, "n": found.n, "peak": found.peak, "threshold": threshold})
     return pd.DataFrame(rows, columns=DOTS_COLUMNS)
