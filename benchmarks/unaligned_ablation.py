@@ -27,7 +27,7 @@ here on the real training images of the run with the classify stage's settings):
   decades of power) of the set against the real training targets; smooth outputs that lack a sensor's grain show here;
 * fixed spikes: interior pixel positions (2 px in from the border) where the mean over the set of |grey − its 3 x 3
   median| is above 3 x the real training targets' largest (the score stage's fixed-dot check,
-  :func:`vtgen.stages.score.dot_threshold` and :func:`vtgen.core.dots.dot_map`): dots drawn at the same place
+  :func:`vtgen.stages.score.dot_threshold` and :func:`vtgen.core.fixed_pattern.dot_map`): dots drawn at the same place
   in every output (a lattice of one-pixel spikes), which no real image has and the distribution metrics barely see.
 * fixed share: the share of the set's fine-detail energy (each pixel minus its 3 x 3 mean) that the set's mean keeps
   (:func:`fixed_share`): about 1/n for detail at independent places, 1 for a pattern every image has with one sign.
@@ -67,7 +67,7 @@ from vtgen.core.distribution import (classifier_encoder, diversity_ratio, fid, f
                                      image_features, kid, mean_image_set, median_interval, memorisation, prdc_scores,
                                      spectrum_distance)
 from vtgen.core.domain import DIRECTIONS
-from vtgen.core.dots import dot_map
+from vtgen.core.fixed_pattern import dot_map
 from vtgen.core.gan import to_model_range
 from vtgen.core.referee import at_side as resized  # area-resized uint8 tiles at the classifier's side
 from vtgen.core.translator import detail_concentration, detail_overlap, fine_detail

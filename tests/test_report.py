@@ -883,16 +883,16 @@ def test_the_report_points_to_the_long_recipe_only_where_class_pairs_fall_short_
 
 
 def test_metrics_carry_the_image_checks_of_the_score_stage():
-    """metrics.json's ``brightness_outside`` and ``fixed_dots`` per direction are the score stage's brightness-range
-    and fixed-dot verdicts (so `dvc exp show` compares them); a direction without a verdict gets no key for it."""
+    """metrics.json's ``brightness_outside`` and ``fixed_pattern_share`` per direction are the score stage's
+    brightness-range and fixed-pattern verdicts (so `dvc exp show` compares them); a direction without a verdict gets no key for it."""
     from vtgen.io.report_metrics import checks_headline
 
     summary = {"verdicts": [
         {"direction": "v2t", "metric": "memorisation", "generated": 0.5, "real_heldout": 0.0},
         {"direction": "v2t", "metric": "brightness", "generated": 0.491667, "real_heldout": 0.125},
-        {"direction": "v2t", "metric": "fixed_dots", "generated": 15, "real_heldout": 0},
+        {"direction": "v2t", "metric": "fixed_pattern", "generated": 0.2, "real_heldout": 0.01, "dots": 15},
         {"direction": "t2v", "metric": "kid", "generated": 1.0}]}
     assert checks_headline(summary, "v2t") == {"brightness_outside": {"generated": 0.491667, "real_heldout": 0.125},
-                                               "fixed_dots": {"generated": 15, "real_heldout": 0}}
+                                               "fixed_pattern_share": {"generated": 0.2, "real_heldout": 0.01}}
     assert checks_headline(summary, "t2v") == {}
     assert checks_headline({}, "v2t") == {}

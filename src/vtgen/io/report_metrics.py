@@ -85,13 +85,13 @@ def distribution_headline(distribution: pd.DataFrame, memorisation: pd.DataFrame
 
 
 # the score stage's image checks: verdict metric -> metrics.json key
-CHECK_KEYS = {"brightness": "brightness_outside", "fixed_dots": "fixed_dots"}
+CHECK_KEYS = {"brightness": "brightness_outside", "fixed_pattern": "fixed_pattern_share"}
 
 
 def checks_headline(score_summary: dict, direction: str) -> dict:
     """The score stage's image checks, generated beside real held-out: ``brightness_outside`` (the share of test
-    images darker or lighter than every real training image of their class) and ``fixed_dots`` (pixel positions with
-    a dot at the same place in every image); a key is left out where its verdict is missing."""
+    images darker or lighter than every real training image of their class) and ``fixed_pattern_share`` (the share
+    of the images' fine detail drawn at the same place with the same sign in every image); a key is left out where its verdict is missing."""
     found = {}
     for verdict in score_summary.get("verdicts") or []:
         key = CHECK_KEYS.get(verdict.get("metric"))

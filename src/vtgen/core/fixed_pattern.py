@@ -1,11 +1,16 @@
-"""Dots at fixed places: one-pixel dots drawn at the same pixel positions in every image of a set.
+"""A fixed pattern: fine detail drawn at the same pixel positions in every image of a set.
 
-A generator's decoder that upsamples with strided transposed convolutions can leave such a lattice
-(Odena et al. 2016); no real image has it, and the feature metrics of :mod:`vtgen.core.distribution`
-barely see it. :func:`dot_map` is the mean over a set of each pixel's distance from its 3 x 3 median;
-:func:`fixed_dots` counts the positions above a threshold, with a bootstrap interval over images.
-Pure: no files, no parameters. Only the score stage (and benchmarks) import it, so a change here
-reruns nothing else.
+A generator's decoder that upsamples with strided transposed convolutions can leave a lattice of
+squares or one-pixel dots at the same places in every output (Odena et al. 2016); no real image has
+it, and the feature metrics of :mod:`vtgen.core.distribution` barely see it.
+
+* :func:`fixed_share`: the share of a set's fine-detail energy that sits at the same place with the
+  same sign in every image (bias-corrected, so about 0 for detail at independent places at any n);
+* :func:`dot_map`, :func:`fixed_dots`: one-pixel dots, the mean over a set of each pixel's distance
+  from its 3 x 3 median, and the positions where it exceeds a threshold.
+
+Each with a percentile bootstrap interval over images. Pure: no files, no parameters. Only the score
+stage (and benchmarks) import it, so a change here reruns only the score and report stages.
 """
 
 from __future__ import annotations
@@ -16,6 +21,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import torch
+
+from vtgen.core.translator import fine_detail
 
 
 def _check_images(images) -> None:
@@ -83,3 +90,49 @@ def fixed_dots(images: torch.Tensor, threshold: float, resamples: int = 200, see
     tail = (1 - level) / 2
     low, high = (float(v) for v in np.quantile(draws, [tail, 1 - tail])) if len(draws) else (math.nan, math.nan)
     return FixedDots(int((mean > threshold).sum()), low, high, float(mean.max()), n)
+
+
+@dataclass(frozen=True)
+class FixedShare:
+    """A set's bias-corrected fixed share with a 95% bootstrap interval; see :func:`fixed_share`."""
+
+    share: float
+    low: float
+    high: float
+    n: int
+
+
+def _share(k, sum_mean_sq, sum_energy) -> np.ndarray:
+    """(Σₚ m² − k Σₚ e) / ((1 − k) Σₚ e), elementwise over draws; NaN where Σₚ e is 0 (no detail at all). For a mean
+    m = Σᵢ wᵢ hᵢ / n with Σ wᵢ = n, E[m²] = μ² + k var h with k = Σ wᵢ² / n² (1/n for the sample itself), and
+    e − m² estimates (1 − k) var h."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(sum_energy > 0, (sum_mean_sq - k * sum_energy) / ((1 - k) * sum_energy), np.nan)
+
+
+def fixed_share(images: torch.Tensor, resamples: int = 200, seed: int = 0, level: float = 0.95) -> FixedShare:
+    """s = (n Σₚ m(p)² − Σₚ e(p)) / ((n − 1) Σₚ e(p)) over the pixel positions and channels p of ``images`` (uint8
+    ``N x 3 x H x W``, N >= 2): h_i = :func:`vtgen.core.translator.fine_detail` of image i in grey levels (each pixel
+    minus its 3 x 3 mean, the detail the training's fixed-pattern costs read), m = mean_i h_i, e = mean_i h_i².
+    With h_i = μ + ε_i this estimates Σ μ² / Σ (μ² + var ε) without bias (m² alone overestimates μ² by var ε / n):
+    the share of the detail's energy that every image draws at the same place with the same sign, about 0 for detail
+    at independent places and 1 for one pattern in every image. Percentile bootstrap over images (``resamples``
+    draws with replacement, numpy generator seeded with ``seed``; a draw that repeats an image corrects by its own
+    weights, :func:`_share`)."""
+    _check_images(images)
+    n = len(images)
+    if n < 2:
+        raise ValueError(f"a fixed share needs at least 2 images, got {n}")
+    weights = np.random.default_rng(seed).multinomial(n, np.full(n, 1.0 / n), size=int(resamples)).astype(np.float64)
+    total, drawn, energy = None, None, np.zeros(n)
+    for start in range(0, n, DOT_CHUNK):
+        detail = fine_detail(images[start:start + DOT_CHUNK].to(torch.float64)).reshape(-1, images[0].numel()).numpy()
+        energy[start:start + len(detail)] = (detail ** 2).sum(axis=1)
+        part, boot = detail.sum(axis=0), weights[:, start:start + len(detail)] @ detail
+        total, drawn = (part, boot) if total is None else (total + part, drawn + boot)
+    share = float(_share(1 / n, ((total / n) ** 2).sum(), energy.sum() / n))
+    draws = _share((weights ** 2).sum(axis=1) / n ** 2, ((drawn / n) ** 2).sum(axis=1), weights @ energy / n)
+    draws = draws[np.isfinite(draws)]
+    tail = (1 - level) / 2
+    low, high = (float(v) for v in np.quantile(draws, [tail, 1 - tail])) if len(draws) else (math.nan, math.nan)
+    return FixedShare(share, low, high, n)

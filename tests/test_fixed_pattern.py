@@ -7,7 +7,7 @@ import pytest
 import scipy.ndimage
 import torch
 
-from vtgen.core import dots
+from vtgen.core import fixed_pattern as dots
 
 
 def _grain(count: int, side: int = 32, seed: int = 0) -> torch.Tensor:
@@ -44,3 +44,25 @@ def test_fixed_dots_finds_a_dot_at_one_place_in_every_image_not_dots_that_move()
     few[:6, :, 10, 20] = 255
     partial = dots.fixed_dots(few, threshold, resamples=200)
     assert partial.count == 1 and partial.low == 0.0 and partial.high == 1.0
+
+
+def test_fixed_share_is_about_0_for_independent_detail_at_any_n_and_the_pattern_share_otherwise():
+    """Grain drawn independently per image: about 0 at n = 8 and n = 64 (the uncorrected share would be about 1/n);
+    one fixed pattern of the grain's energy added to every image: about 1/2; identical images: exactly 1. Each
+    interval holds its estimate."""
+    generator = torch.Generator().manual_seed(0)
+    pattern = torch.randn(1, 1, 32, 32, generator=generator) * 20
+
+    def images(count, with_pattern):
+        grain = torch.randn(count, 1, 32, 32, generator=generator) * 20 + (pattern if with_pattern else 0)
+        return (128 + grain).round().clamp(0, 255).to(torch.uint8).expand(-1, 3, -1, -1).contiguous()
+
+    for count in (8, 64):
+        found = dots.fixed_share(images(count, False))
+        assert abs(found.share) < 0.03 and found.low <= found.share <= found.high and found.n == count, found
+        half = dots.fixed_share(images(count, True))
+        assert 0.4 < half.share < 0.6 and half.low <= half.share <= half.high and half.low > found.high, half
+    same = images(1, True).expand(10, -1, -1, -1).contiguous()
+    assert dots.fixed_share(same).share == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="at least 2 images"):
+        dots.fixed_share(same[:1])
