@@ -8,6 +8,7 @@ import scipy.ndimage
 import torch
 
 from vtgen.core import fixed_pattern as dots
+from vtgen.core.translator import fine_detail
 
 
 def _grain(count: int, side: int = 32, seed: int = 0) -> torch.Tensor:
@@ -64,5 +65,8 @@ def test_fixed_share_is_about_0_for_independent_detail_at_any_n_and_the_pattern_
         assert 0.4 < half.share < 0.6 and half.low <= half.share <= half.high and half.low > found.high, half
     same = images(1, True).expand(10, -1, -1, -1).contiguous()
     assert dots.fixed_share(same).share == pytest.approx(1.0)
+    # the pattern every image shares is then the whole detail: its RMS in grey levels
+    detail = fine_detail(same[:1].float().mean(dim=1, keepdim=True))
+    assert dots.fixed_share(same).rms == pytest.approx(float(detail.pow(2).mean().sqrt()), rel=1e-4)
     with pytest.raises(ValueError, match="at least 2 images"):
         dots.fixed_share(same[:1])

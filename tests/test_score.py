@@ -449,10 +449,11 @@ def test_fixed_pattern_check_warns_on_a_lattice_in_every_output_not_on_grain():
     """Real training and held-out touches are grain (grey 100-139 at random). Generated outputs with a lattice of
     nine one-pixel dots at the same places in every image: 9 dots against held-out's 0, beyond both bootstrap
     intervals, and a fixed share far above held-out's: a warning. Outputs with a faint fixed pattern (a share beyond
-    the noise but under FIXED_SHARE_MARGIN) and outputs that are grain like the real ones pass. Near-flat real
+    the noise but under FIXED_SHARE_MARGIN, or a large share of near-flat outputs under FIXED_RMS_FLOOR grey levels) and
+    outputs that are grain like the real ones pass. Near-flat real
     images keep the dot threshold at DOT_FLOOR."""
     from vtgen.core.fixed_pattern import dot_map
-    from vtgen.stages.score import (DOT_FLOOR, FIXED_PATTERN_FAMILY, FIXED_SHARE_MARGIN, dot_threshold,
+    from vtgen.stages.score import (DOT_FLOOR, FIXED_PATTERN_FAMILY, FIXED_RMS_FLOOR, FIXED_SHARE_MARGIN, dot_threshold,
                                     fixed_pattern_direction, fixed_pattern_verdicts)
 
     def grain(count, seed):
@@ -478,6 +479,16 @@ def test_fixed_pattern_check_warns_on_a_lattice_in_every_output_not_on_grain():
     faint = grain(40, 3) + torch.randint(0, 9, (1, 1, 24, 24), generator=torch.Generator().manual_seed(9)).to(torch.uint8)
     (found,) = fixed_pattern_verdicts(fixed_pattern_direction("v2t", {**sets, ("generated", "all"): (faint, classes, groups)}, seed=0))
     assert found["status"] == "ok" and found["dots"] == 0 and "beyond the noise, but less than 0.1, above the real held-out share" in found["text"], found["text"]
+
+    # near-flat outputs (grey 120-121) sharing one pattern of 0-1 grey levels: half their detail, but under 1 level RMS
+    flat_grain = torch.randint(120, 122, (40, 1, 24, 24), generator=torch.Generator().manual_seed(4)).to(torch.uint8)
+    faint_lattice = (flat_grain + torch.randint(0, 2, (1, 1, 24, 24), generator=torch.Generator().manual_seed(5)).to(torch.uint8))
+    faint_lattice = faint_lattice.expand(-1, 3, -1, -1).contiguous()
+    table = fixed_pattern_direction("v2t", {**sets, ("generated", "all"): (faint_lattice, classes, groups)}, seed=0)
+    gen = table.set_index("candidate").loc["generated"]
+    assert gen["low"] > FIXED_SHARE_MARGIN + table.set_index("candidate").loc["real_heldout", "high"] and gen["rms"] < FIXED_RMS_FLOOR
+    (found,) = fixed_pattern_verdicts(table)
+    assert found["status"] == "ok" and "too faint to see" in found["text"], found["text"]
 
     plain = {**sets, ("generated", "all"): (grain(40, 3), classes, groups)}
     (found,) = fixed_pattern_verdicts(fixed_pattern_direction("v2t", plain, seed=0))

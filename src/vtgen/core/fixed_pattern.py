@@ -94,11 +94,15 @@ def fixed_dots(images: torch.Tensor, threshold: float, resamples: int = 200, see
 
 @dataclass(frozen=True)
 class FixedShare:
-    """A set's bias-corrected fixed share with a 95% bootstrap interval; see :func:`fixed_share`."""
+    """A set's bias-corrected fixed share with a 95% bootstrap interval, and the fixed pattern's RMS in grey levels
+    (sqrt of the share, at least 0, times the set's mean fine-detail energy per pixel) at each; see :func:`fixed_share`."""
 
     share: float
     low: float
     high: float
+    rms: float
+    rms_low: float
+    rms_high: float
     n: int
 
 
@@ -111,28 +115,35 @@ def _share(k, sum_mean_sq, sum_energy) -> np.ndarray:
 
 
 def fixed_share(images: torch.Tensor, resamples: int = 200, seed: int = 0, level: float = 0.95) -> FixedShare:
-    """s = (n Σₚ m(p)² − Σₚ e(p)) / ((n − 1) Σₚ e(p)) over the pixel positions and channels p of ``images`` (uint8
-    ``N x 3 x H x W``, N >= 2): h_i = :func:`vtgen.core.translator.fine_detail` of image i in grey levels (each pixel
-    minus its 3 x 3 mean, the detail the training's fixed-pattern costs read), m = mean_i h_i, e = mean_i h_i².
+    """s = (n Σₚ m(p)² − Σₚ e(p)) / ((n − 1) Σₚ e(p)) over the pixel positions p of ``images`` (uint8
+    ``N x 3 x H x W``, N >= 2): h_i = :func:`vtgen.core.translator.fine_detail` of image i's grey (channel mean, in grey
+    levels; each pixel minus its 3 x 3 mean, the detail the training's fixed-pattern costs read), m = mean_i h_i,
+    e = mean_i h_i².
     With h_i = μ + ε_i this estimates Σ μ² / Σ (μ² + var ε) without bias (m² alone overestimates μ² by var ε / n):
     the share of the detail's energy that every image draws at the same place with the same sign, about 0 for detail
-    at independent places and 1 for one pattern in every image. Percentile bootstrap over images (``resamples``
+    at independent places and 1 for one pattern in every image; ``rms`` is that pattern's size in grey levels (how
+    visible it is). Percentile bootstrap over images (``resamples``
     draws with replacement, numpy generator seeded with ``seed``; a draw that repeats an image corrects by its own
     weights, :func:`_share`)."""
     _check_images(images)
     n = len(images)
     if n < 2:
         raise ValueError(f"a fixed share needs at least 2 images, got {n}")
-    weights = np.random.default_rng(seed).multinomial(n, np.full(n, 1.0 / n), size=int(resamples)).astype(np.float64)
+    weights = np.random.default_rng(seed).multinomial(n, np.full(n, 1.0 / n), size=int(resamples)).astype(np.float32)
     total, drawn, energy = None, None, np.zeros(n)
     for start in range(0, n, DOT_CHUNK):
-        detail = fine_detail(images[start:start + DOT_CHUNK].to(torch.float64)).reshape(-1, images[0].numel()).numpy()
-        energy[start:start + len(detail)] = (detail ** 2).sum(axis=1)
-        part, boot = detail.sum(axis=0), weights[:, start:start + len(detail)] @ detail
+        grey = images[start:start + DOT_CHUNK].float().mean(dim=1, keepdim=True)
+        detail = fine_detail(grey).flatten(1).numpy()
+        energy[start:start + len(detail)] = (detail.astype(np.float64) ** 2).sum(axis=1)
+        part, boot = detail.sum(axis=0, dtype=np.float64), weights[:, start:start + len(detail)] @ detail
         total, drawn = (part, boot) if total is None else (total + part, drawn + boot)
     share = float(_share(1 / n, ((total / n) ** 2).sum(), energy.sum() / n))
-    draws = _share((weights ** 2).sum(axis=1) / n ** 2, ((drawn / n) ** 2).sum(axis=1), weights @ energy / n)
+    weights = weights.astype(np.float64)
+    draws = _share((weights ** 2).sum(axis=1) / n ** 2, ((drawn.astype(np.float64) / n) ** 2).sum(axis=1),
+                   weights @ energy / n)
     draws = draws[np.isfinite(draws)]
     tail = (1 - level) / 2
     low, high = (float(v) for v in np.quantile(draws, [tail, 1 - tail])) if len(draws) else (math.nan, math.nan)
-    return FixedShare(share, low, high, n)
+    per_pixel = energy.sum() / n / (images.shape[-2] * images.shape[-1])
+    rms = [math.sqrt(max(v, 0.0) * per_pixel) if math.isfinite(v) else math.nan for v in (share, low, high)]
+    return FixedShare(share, low, high, *rms, n)
