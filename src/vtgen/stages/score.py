@@ -91,9 +91,9 @@ FIXED_PATTERN_COLUMNS = ["direction", "candidate", "share", "low", "high", "rms"
                          "dots_low", "dots_high", "n", "peak", "threshold"]
 FIXED_PATTERN_FAMILY = "fixed pattern (pixels)"
 # a fixed pattern is a warning when its share lies this much above real held-out's (beyond both intervals too) and its
-# RMS is at least FIXED_RMS_FLOOR grey levels: vt60 V2T's lattice of squares, plain in its grids, has share 0.20-0.27
-# (real 0.015) and RMS 1.6-2.0; vt60 T2V's (0.023, RMS 0.9) and the embedded default V2T's (0.14, RMS 0.7) do not show
-# (benchmarks/README.md, Sixty-fifth round)
+# RMS is at least FIXED_RMS_FLOOR grey levels: vt60 V2T's lattice of squares, plain in its grids, has share 0.23-0.36
+# (real 0.015) and RMS 1.6-2.0; vt60 T2V's (0.022, RMS 0.85) and the embedded default V2T's (0.14, RMS 0.65) do not
+# show (benchmarks/README.md, Sixty-fifth round)
 FIXED_SHARE_MARGIN = 0.1
 FIXED_RMS_FLOOR = 1.0
 DOT_FACTOR = 3.0  # the threshold: this many times the real training images' largest dot-map value (their texture's own)
