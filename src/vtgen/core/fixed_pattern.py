@@ -22,7 +22,6 @@ import cv2
 import numpy as np
 import torch
 
-from vtgen.core.translator import fine_detail
 
 
 def _check_images(images) -> None:
@@ -92,6 +91,14 @@ def fixed_dots(images: torch.Tensor, threshold: float, resamples: int = 200, see
     return FixedDots(int((mean > threshold).sum()), low, high, float(mean.max()), n)
 
 
+def grey_detail(images: torch.Tensor) -> np.ndarray:
+    """uint8 ``N x 3 x H x W`` -> float32 ``N x H x W``: each image's grey (channel mean) minus its 3 x 3 mean (edges
+    replicated), the high-pass detail :func:`vtgen.core.translator.fine_detail` gives (tested equal; computed here with
+    OpenCV's box filter so that the score stage does not import the networks)."""
+    grey = images.float().mean(dim=1).numpy()
+    return grey - np.stack([cv2.blur(g, (3, 3), borderType=cv2.BORDER_REPLICATE) for g in grey]) if len(grey) else grey
+
+
 @dataclass(frozen=True)
 class FixedShare:
     """A set's bias-corrected fixed share with a 95% bootstrap interval, and the fixed pattern's RMS in grey levels
@@ -116,8 +123,8 @@ def _share(k, sum_mean_sq, sum_energy) -> np.ndarray:
 
 def fixed_share(images: torch.Tensor, resamples: int = 200, seed: int = 0, level: float = 0.95) -> FixedShare:
     """s = (n Σₚ m(p)² − Σₚ e(p)) / ((n − 1) Σₚ e(p)) over the pixel positions p of ``images`` (uint8
-    ``N x 3 x H x W``, N >= 2): h_i = :func:`vtgen.core.translator.fine_detail` of image i's grey (channel mean, in grey
-    levels; each pixel minus its 3 x 3 mean, the detail the training's fixed-pattern costs read), m = mean_i h_i,
+    ``N x 3 x H x W``, N >= 2): h_i = :func:`grey_detail` of image i (its grey minus the grey's 3 x 3 mean, in grey
+    levels: the detail the training's fixed-pattern costs read), m = mean_i h_i,
     e = mean_i h_i².
     With h_i = μ + ε_i this estimates Σ μ² / Σ (μ² + var ε) without bias (m² alone overestimates μ² by var ε / n):
     the share of the detail's energy that every image draws at the same place with the same sign, about 0 for detail
@@ -132,8 +139,7 @@ def fixed_share(images: torch.Tensor, resamples: int = 200, seed: int = 0, level
     weights = np.random.default_rng(seed).multinomial(n, np.full(n, 1.0 / n), size=int(resamples)).astype(np.float32)
     total, drawn, energy = None, None, np.zeros(n)
     for start in range(0, n, DOT_CHUNK):
-        grey = images[start:start + DOT_CHUNK].float().mean(dim=1, keepdim=True)
-        detail = fine_detail(grey).flatten(1).numpy()
+        detail = grey_detail(images[start:start + DOT_CHUNK]).reshape(-1, images.shape[-2] * images.shape[-1])
         energy[start:start + len(detail)] = (detail.astype(np.float64) ** 2).sum(axis=1)
         part, boot = detail.sum(axis=0, dtype=np.float64), weights[:, start:start + len(detail)] @ detail
         total, drawn = (part, boot) if total is None else (total + part, drawn + boot)
