@@ -22,16 +22,27 @@ import cv2
 import numpy as np
 import torch
 
+from vtgen.core.distribution import _check_images
 
-
-def _check_images(images) -> None:
-    if not isinstance(images, torch.Tensor) or images.dtype != torch.uint8 or images.ndim != 4 or images.shape[1] != 3:
-        raise ValueError(f"images: expected uint8 images N x 3 x H x W, got "
-                         f"{getattr(images, 'dtype', type(images).__name__)} {tuple(getattr(images, 'shape', ()))}")
 
 
 DOT_BORDER = 2  # px cut from each side of a dot map, so every pixel kept has its whole 3 x 3 neighbourhood inside
 DOT_CHUNK = 256  # images per block of per-pixel residuals
+
+
+def _resample_weights(n: int, resamples: int, seed: int) -> np.ndarray:
+    """float32 ``resamples x n``: how often each of n images is drawn in each bootstrap resample (with replacement,
+    numpy generator seeded with ``seed``)."""
+    return np.random.default_rng(seed).multinomial(n, np.full(n, 1.0 / n), size=int(resamples)).astype(np.float32)
+
+
+def _percentiles(draws: np.ndarray, level: float) -> tuple[float, float]:
+    """The percentile interval of bootstrap draws at ``level``; NaNs when there are none."""
+    if not len(draws):
+        return math.nan, math.nan
+    tail = (1 - level) / 2
+    low, high = np.quantile(draws, [tail, 1 - tail])
+    return float(low), float(high)
 
 
 def _dot_residual_blocks(images: torch.Tensor, border: int = DOT_BORDER):
@@ -50,7 +61,7 @@ def dot_map(images: torch.Tensor, border: int = DOT_BORDER) -> np.ndarray:
     """uint8 ``N x 3 x H x W`` (N >= 1, H, W > 2 ``border``) -> float64 ``(H − 2 border) x (W − 2 border)``: the mean
     over the images of |grey − its 3 x 3 median| per pixel position. A one-pixel dot drawn at the same place in
     every image (a lattice of the decoder's upsampling) stays in the mean; texture at independent places averages out."""
-    _check_images(images)
+    _check_images(images, "images")
     if len(images) == 0 or min(images.shape[-2:]) <= 2 * border:
         raise ValueError(f"a dot map needs at least one image larger than {2 * border} px, got {tuple(images.shape)}")
     total = sum(block.sum(axis=0, dtype=np.float64) for _, block in _dot_residual_blocks(images, border))
@@ -76,18 +87,17 @@ def fixed_dots(images: torch.Tensor, threshold: float, resamples: int = 200, see
     draws with replacement, numpy generator seeded with ``seed``), each draw's map a weighted mean of the images'
     residuals; ``peak`` is the map's largest value."""
     n = len(images)
-    _check_images(images)
+    _check_images(images, "images")
     if n == 0:
         raise ValueError("fixed dots need at least one image")
-    weights = np.random.default_rng(seed).multinomial(n, np.full(n, 1.0 / n), size=int(resamples)).astype(np.float32)
+    weights = _resample_weights(n, resamples, seed)
     total, drawn = None, None
     for start, block in _dot_residual_blocks(images):
         part, boot = block.sum(axis=0, dtype=np.float64), weights[:, start:start + len(block)] @ block
         total, drawn = (part, boot) if total is None else (total + part, drawn + boot)
     mean = total / n
     draws = ((drawn / n) > threshold).sum(axis=1)
-    tail = (1 - level) / 2
-    low, high = (float(v) for v in np.quantile(draws, [tail, 1 - tail])) if len(draws) else (math.nan, math.nan)
+    low, high = _percentiles(draws, level)
     return FixedDots(int((mean > threshold).sum()), low, high, float(mean.max()), n)
 
 
@@ -132,11 +142,11 @@ def fixed_share(images: torch.Tensor, resamples: int = 200, seed: int = 0, level
     visible it is). Percentile bootstrap over images (``resamples``
     draws with replacement, numpy generator seeded with ``seed``; a draw that repeats an image corrects by its own
     weights, :func:`_share`)."""
-    _check_images(images)
+    _check_images(images, "images")
     n = len(images)
     if n < 2:
         raise ValueError(f"a fixed share needs at least 2 images, got {n}")
-    weights = np.random.default_rng(seed).multinomial(n, np.full(n, 1.0 / n), size=int(resamples)).astype(np.float32)
+    weights = _resample_weights(n, resamples, seed)
     total, drawn, energy = None, None, np.zeros(n)
     for start in range(0, n, DOT_CHUNK):
         detail = grey_detail(images[start:start + DOT_CHUNK]).reshape(-1, images.shape[-2] * images.shape[-1])
@@ -148,8 +158,7 @@ def fixed_share(images: torch.Tensor, resamples: int = 200, seed: int = 0, level
     draws = _share((weights ** 2).sum(axis=1) / n ** 2, ((drawn.astype(np.float64) / n) ** 2).sum(axis=1),
                    weights @ energy / n)
     draws = draws[np.isfinite(draws)]
-    tail = (1 - level) / 2
-    low, high = (float(v) for v in np.quantile(draws, [tail, 1 - tail])) if len(draws) else (math.nan, math.nan)
+    low, high = _percentiles(draws, level)
     per_pixel = energy.sum() / n / (images.shape[-2] * images.shape[-1])
     rms = [math.sqrt(max(v, 0.0) * per_pixel) if math.isfinite(v) else math.nan for v in (share, low, high)]
     return FixedShare(share, low, high, *rms, n)
