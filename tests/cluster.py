@@ -94,6 +94,26 @@ class Daemons:
         return text[-tail:]
 
 
+def end_job_leftovers(submit_dir: Path) -> list[int]:
+    """SIGKILL every process of a SLURM job submitted from ``submit_dir`` (its environment's ``SLURM_SUBMIT_DIR``)
+    that outlived its job; returns their pids. The test cluster tracks a job's processes by parent
+    (``proctrack/linuxproc``), so a child whose parent ended first (a training under a cancelled Snakemake job
+    step) is no longer found when the job is cancelled, and would load every later test (a site's
+    ``proctrack/cgroup`` does not lose them)."""
+    wanted = f"SLURM_SUBMIT_DIR={submit_dir}".encode()
+    ended = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            if wanted in (entry / "environ").read_bytes().split(b"\0"):
+                os.kill(int(entry.name), 9)
+                ended.append(int(entry.name))
+        except (OSError, ProcessLookupError):
+            continue  # ended meanwhile, or not ours to read
+    return ended
+
+
 def wait_for(check, what: str, timeout: float, daemons: Daemons | None = None, names: tuple = ()) -> None:
     """Poll ``check()`` until true; raise Unavailable naming ``what`` (and the logs of ``names``) on time-out or death."""
     deadline = time.monotonic() + timeout

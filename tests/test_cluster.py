@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 import torch
 
-from cluster import ACCOUNT, PARTITION, Unavailable, start_slurm, start_sshd
+from cluster import ACCOUNT, PARTITION, Unavailable, end_job_leftovers, start_slurm, start_sshd
 from conftest import ENV, REPO, make_project, tiny_params
 from vtgen.pipeline import STAGES
 
@@ -165,7 +165,9 @@ def test_tiny_main_job_through_slurm_matches_the_local_run_and_heals(slurm, snak
             workflow.send_signal(signal.SIGINT)  # Snakemake cancels its SLURM jobs
             workflow.wait(60)
         log.close()
+        leftovers = end_job_leftovers(project)
     text = (tmp_path / "snakemake.log").read_text()
+    print(f"\nprocesses of ended jobs still running after the workflow, killed: {leftovers or 'none'}")
     assert code == 0, text[-4000:]
     disturb.join(10)
     assert disturb.error is None, disturb.error
