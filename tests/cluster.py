@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import time
@@ -107,9 +108,9 @@ def end_job_leftovers(submit_dir: Path) -> list[int]:
             continue
         try:
             if wanted in (entry / "environ").read_bytes().split(b"\0"):
-                os.kill(int(entry.name), 9)
+                os.kill(int(entry.name), signal.SIGKILL)
                 ended.append(int(entry.name))
-        except (OSError, ProcessLookupError):
+        except OSError:
             continue  # ended meanwhile, or not ours to read
     return ended
 
