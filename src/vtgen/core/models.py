@@ -65,7 +65,42 @@ def upsampling_conv(in_channels: int, out_channels: int, kernel: int, bias: bool
     )
 
 
-UPSAMPLINGS = ("transpose", "resize", "bilinear", "subpixel")
+def balanced_kernel(weight: torch.Tensor) -> torch.Tensor:
+    """A stride-2 transposed convolution's kernel (``in x out x k x k``) with the sums of its four sub-pixel kernels made
+    equal by the least-squares change. Output pixel ``o`` takes the taps ``t`` with ``t = o + padding`` (mod 2) per axis, so
+    the taps split into four classes by (row, column) parity, one per output sub-pixel; each class's ``c_q`` taps move by
+    ``(s - S_q) / c_q``, ``S_q`` their sum and ``s = sum(S_q / c_q) / sum(1 / c_q)``. Equal sums make a constant input give
+    a constant output away from the border: no checkerboard (the condition of Sugawara et al. 2019, who meet it by a
+    zero-order hold, i.e. a resize convolution: 9 free taps of a 4 x 4 kernel; this keeps 13)."""
+    size = weight.shape[-1]
+    parity = torch.arange(size, device=weight.device) % 2
+    classes = (2 * parity[:, None] + parity[None, :]).flatten()
+    masks = (classes[None, :] == torch.arange(4, device=weight.device)[:, None]).to(weight.dtype)  # 4 x k*k
+    counts = masks.sum(dim=1)
+    sums = weight.flatten(2) @ masks.T  # in x out x 4
+    target = (sums / counts).sum(dim=-1, keepdim=True) / (1 / counts).sum()
+    return weight + (((target - sums) / counts) @ masks).view_as(weight)
+
+
+class BalancedTransposedConv(nn.ConvTranspose2d):
+    """A stride-2 transposed convolution that uses :func:`balanced_kernel` of its weight: the freedom of pix2pix's
+    upsampling to draw sub-pixel detail that varies with its input, without the checkerboard a constant input gets
+    (the lattice V2T drew on flat fields, benchmarks/README.md, Sixty-seventh round)."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.conv_transpose2d(x, balanced_kernel(self.weight), self.bias, self.stride, self.padding,
+                                  self.output_padding, self.groups, self.dilation)
+
+
+def balanced_upsampling_conv(in_channels: int, out_channels: int, kernel: int, bias: bool) -> BalancedTransposedConv:
+    """:func:`upsampling_conv` with balanced sub-pixel kernels (:class:`BalancedTransposedConv`)."""
+    padding, output_padding = resampling_padding(kernel)
+    return BalancedTransposedConv(
+        in_channels, out_channels, kernel, stride=2, padding=padding, output_padding=output_padding, bias=bias
+    )
+
+
+UPSAMPLINGS = ("transpose", "resize", "bilinear", "subpixel", "balanced")
 PADDINGS = ("zeros", "reflect")  # the U-Net encoder's: pix2pix's zeros, or by reflection
 
 
@@ -198,7 +233,8 @@ class UNetGenerator(nn.Module):
     counts the image and conditioning channels only. ``upsample`` 'resize' doubles each decoder level by
     :func:`resize_conv` instead of a transposed convolution ('transpose', pix2pix's); 'bilinear' by
     :func:`bilinear_conv` (resize with a blur after it); 'subpixel' by
-    :class:`SubpixelConv`, which starts as 'resize' does and may learn sub-pixel detail. ``padding`` 'reflect' pads
+    :class:`SubpixelConv`, which starts as 'resize' does and may learn sub-pixel detail; 'balanced' by
+    :class:`BalancedTransposedConv` (transposed, without the checkerboard of a constant input). ``padding`` 'reflect' pads
     the encoder's convolutions by reflection where their input is larger than 2 px (the bottleneck's keeps zeros),
     so that no level sees a zero frame that tells it where the border is ('zeros', pix2pix's).
     ``grey_output`` draws one channel and repeats it ``out_channels`` times (:func:`grey_targets`: for targets
@@ -235,7 +271,8 @@ class UNetGenerator(nn.Module):
             raise ValueError(f"padding must be one of {PADDINGS}, got {padding!r}")
         self.upsample, self.padding = upsample, padding
         up = {"transpose": lambda i, o, bias: upsampling_conv(i, o, kernel, bias), "resize": resize_conv,
-              "bilinear": bilinear_conv, "subpixel": SubpixelConv}[upsample]
+              "bilinear": bilinear_conv, "subpixel": SubpixelConv,
+              "balanced": lambda i, o, bias: balanced_upsampling_conv(i, o, kernel, bias)}[upsample]
         self.latent, self.latent_map = checked_latent(latent), bool(latent_map)
         check_kernel(kernel)
         if not 0.0 <= dropout < 1.0:
