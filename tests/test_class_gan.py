@@ -799,6 +799,64 @@ def test_subpixel_upsampling_starts_as_nearest_upsampling_and_can_leave_it():
     assert not torch.equal(moved, F.interpolate(moved[..., ::2, ::2], scale_factor=2, mode="nearest"))
 
 
+@pytest.mark.parametrize("kernel", [4, 5])
+def test_balanced_upsampling_gives_a_constant_map_no_checkerboard(kernel):
+    """The balanced transposed convolution maps a constant input to a constant interior (within float rounding),
+    where the plain one with the same weights draws a checkerboard; its kernel's four sub-pixel sums are equal, the
+    change is the least-squares one (a balanced kernel is left as it is) and the weight still learns."""
+    from vtgen.core.models import balanced_kernel, balanced_upsampling_conv, init_weights, upsampling_conv
+
+    torch.manual_seed(0)
+    balanced = balanced_upsampling_conv(3, 2, kernel, bias=True)
+    balanced.apply(init_weights)
+    plain = upsampling_conv(3, 2, kernel, bias=True)
+    plain.load_state_dict(balanced.state_dict())
+    flat = torch.full((1, 3, 8, 8), 0.7)
+    with torch.no_grad():
+        out, checkered = balanced(flat), plain(flat)
+    assert out.shape == checkered.shape == (1, 2, 16, 16)
+    interior, plain_interior = out[..., 3:-3, 3:-3], checkered[..., 3:-3, 3:-3]
+    assert (interior - interior[..., :1, :1]).abs().max() < 1e-6
+    assert (plain_interior - plain_interior[..., :1, :1]).abs().max() > 1e-3
+    kernel_sums = [balanced_kernel(balanced.weight)[..., r::2, c::2].sum(dim=(-2, -1)) for r in (0, 1) for c in (0, 1)]
+    assert all(torch.allclose(s, kernel_sums[0], atol=1e-6) for s in kernel_sums[1:])
+    fixed = balanced_kernel(balanced.weight).detach()
+    assert torch.allclose(balanced_kernel(fixed), fixed, atol=1e-7)
+    # least squares: the change is constant within each sub-pixel class, so it is orthogonal to any balanced kernel's
+    # difference from the projection (here: the projection of a random kernel)
+    other = balanced_kernel(torch.randn_like(fixed))
+    change = fixed - balanced.weight.detach()
+    assert abs(float((change * (other - fixed)).sum())) < 1e-5
+    balanced(torch.randn(1, 3, 8, 8)).square().mean().backward()
+    assert balanced.weight.grad is not None and balanced.weight.grad.abs().sum() > 0
+
+
+def test_balanced_upsampling_builds_every_decoder_level_and_travels_with_the_generator(tmp_path):
+    """``class_gan.upsample: balanced`` puts a balanced transposed conv in each U-Net decoder level (plain
+    ``transpose`` none); `vtgen generate` reloads the network that was trained and gives the same output."""
+    from vtgen.core.models import BalancedTransposedConv
+    from vtgen.io.checkpoints import load_translator, save_generator
+
+    torch.manual_seed(0)
+    settings = objective_settings(dict(SETTINGS), {"preset": "fast", "class_gan": dict(
+        {k: v for k, v in CLASS_GAN.items() if k != "objective"}, upsample="balanced")}, "class_gan")
+    training = TranslatorTraining(settings, "cpu", num_classes=2)
+    ups = [m for m in training.generator.modules() if isinstance(m, BalancedTransposedConv)]
+    assert len(ups) == training.generator.depth
+    training.step(*batch())
+    save_generator(tmp_path / "generator.pt", training.generator, settings, "v2t", "all")
+    loaded, _ = load_translator(tmp_path)
+    assert sum(isinstance(m, BalancedTransposedConv) for m in loaded.modules()) == loaded.depth
+    x = batch()[0]
+    z = torch.randn(len(x), loaded.latent)
+    with torch.no_grad():
+        assert torch.equal(loaded(x, z), training.generator.eval()(x, z))
+    plain = objective_settings(dict(SETTINGS), {"preset": "fast", "class_gan": dict(
+        {k: v for k, v in CLASS_GAN.items() if k != "objective"}, upsample="transpose")}, "class_gan")
+    assert not any(isinstance(m, BalancedTransposedConv)
+                   for m in TranslatorTraining(plain, "cpu", num_classes=2).generator.modules())
+
+
 def test_resize_upsampling_keeps_a_constant_map_constant_up_to_the_border():
     """Reflection padding: no border value the generator could draw bands along (zero padding darkens or
     brightens the outermost row and column of a constant map)."""

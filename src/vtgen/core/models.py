@@ -70,8 +70,8 @@ def balanced_kernel(weight: torch.Tensor) -> torch.Tensor:
     equal by the least-squares change. Output pixel ``o`` takes the taps ``t`` with ``t = o + padding`` (mod 2) per axis, so
     the taps split into four classes by (row, column) parity, one per output sub-pixel; each class's ``c_q`` taps move by
     ``(s - S_q) / c_q``, ``S_q`` their sum and ``s = sum(S_q / c_q) / sum(1 / c_q)``. Equal sums make a constant input give
-    a constant output away from the border: no checkerboard (the condition of Sugawara et al. 2019, who meet it by a
-    zero-order hold, i.e. a resize convolution: 9 free taps of a 4 x 4 kernel; this keeps 13)."""
+    a constant output away from the border: no checkerboard (the linear multirate condition Sugawara et al. 2019 carry to
+    CNNs, meeting it by a zero-order hold, i.e. a resize convolution: 9 free taps of a 4 x 4 kernel; this keeps 13)."""
     size = weight.shape[-1]
     parity = torch.arange(size, device=weight.device) % 2
     classes = (2 * parity[:, None] + parity[None, :]).flatten()

@@ -277,7 +277,8 @@ class TranslatorTraining:
         output pairs of the same class, in every term above that reads D.
         ``upsample`` 'resize' builds G's decoder from resize convolutions (no checkerboard without a pixel loss to hide it),
         'bilinear' from bilinear ones (resize, then a [1, 2, 1] blur: no 2 x 2 blocks lined up along rows and columns),
-        'subpixel' from sub-pixel convolutions that start as resize ones (ICNR) and may learn finer detail;
+        'subpixel' from sub-pixel convolutions that start as resize ones (ICNR) and may learn finer detail,
+        'balanced' from transposed ones whose sub-pixel kernels sum alike (no checkerboard of a constant input);
         ``padding`` 'reflect' pads G's encoder by reflection (no zero frame to draw border bands from).
         ``d_antialias`` starts D with a full-side stride-1 conv and blurs before each of its stride-2 convs
         (:class:`vtgen.core.models.BinomialBlur`), so D's gradient, what G learns from, carries no lattice of the
