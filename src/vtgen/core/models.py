@@ -83,13 +83,16 @@ def balanced_kernel(weight: torch.Tensor) -> torch.Tensor:
 
 
 class BalancedTransposedConv(nn.ConvTranspose2d):
-    """A stride-2 transposed convolution that uses :func:`balanced_kernel` of its weight: the freedom of pix2pix's
-    upsampling to draw sub-pixel detail that varies with its input, without the checkerboard a constant input gets
-    (the lattice V2T drew on flat fields, benchmarks/README.md, Sixty-seventh round)."""
+    """A stride-2 transposed convolution that uses :func:`balanced_kernel` of its weight and pads its input by one
+    replicated pixel (cropping the two output pixels that adds per side), so that a constant input gives a constant
+    output up to the border too: the freedom of pix2pix's upsampling to draw sub-pixel detail that varies with its
+    input, without the checkerboard (the lattice V2T drew on flat fields, benchmarks/README.md, Sixty-seventh round)
+    or the frame where the border pixels miss taps (Sixty-eighth round)."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return F.conv_transpose2d(x, balanced_kernel(self.weight), self.bias, self.stride, self.padding,
-                                  self.output_padding, self.groups, self.dilation)
+        out = F.conv_transpose2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), balanced_kernel(self.weight), self.bias,
+                                 self.stride, self.padding, self.output_padding, self.groups, self.dilation)
+        return out[..., 2:-2, 2:-2]
 
 
 def balanced_upsampling_conv(in_channels: int, out_channels: int, kernel: int, bias: bool) -> BalancedTransposedConv:
@@ -234,7 +237,7 @@ class UNetGenerator(nn.Module):
     :func:`resize_conv` instead of a transposed convolution ('transpose', pix2pix's); 'bilinear' by
     :func:`bilinear_conv` (resize with a blur after it); 'subpixel' by
     :class:`SubpixelConv`, which starts as 'resize' does and may learn sub-pixel detail; 'balanced' by
-    :class:`BalancedTransposedConv` (transposed, without the checkerboard of a constant input). ``padding`` 'reflect' pads
+    :class:`BalancedTransposedConv` (transposed, without the checkerboard or frame of a constant input). ``padding`` 'reflect' pads
     the encoder's convolutions by reflection where their input is larger than 2 px (the bottleneck's keeps zeros),
     so that no level sees a zero frame that tells it where the border is ('zeros', pix2pix's).
     ``grey_output`` draws one channel and repeats it ``out_channels`` times (:func:`grey_targets`: for targets
