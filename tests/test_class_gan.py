@@ -802,9 +802,9 @@ def test_subpixel_upsampling_starts_as_nearest_upsampling_and_can_leave_it():
 @pytest.mark.parametrize("kernel", [4, 5])
 def test_balanced_upsampling_gives_a_constant_map_no_checkerboard(kernel):
     """The balanced transposed convolution maps a constant input to a constant output, border included (within float
-    rounding), where the plain one with the same weights draws a checkerboard and a frame; its kernel's four sub-pixel
-    sums are equal, the change is the least-squares one (a balanced kernel is left as it is), it doubles the side as
-    the plain one does, down to a 1 x 1 input, and the weight still learns."""
+    rounding), where the plain one with the same weights draws a checkerboard and a frame; inputs of 1 or 2 px keep the
+    zero border (a layout to draw from); its kernel's four sub-pixel sums are equal, the change is the least-squares
+    one (a balanced kernel is left as it is) and the weight still learns."""
     from vtgen.core.models import balanced_kernel, balanced_upsampling_conv, init_weights, upsampling_conv
 
     torch.manual_seed(0)
@@ -821,7 +821,12 @@ def test_balanced_upsampling_gives_a_constant_map_no_checkerboard(kernel):
     assert (plain_interior - plain_interior[..., :1, :1]).abs().max() > 1e-3
     assert (checkered[..., 0, 4:-4] - checkered[..., 2, 4:-4]).abs().max() > 1e-3  # plain: a frame (rows of one parity)
     with torch.no_grad():
-        assert balanced(torch.randn(1, 3, 1, 1)).shape == plain(torch.randn(1, 3, 1, 1)).shape == (1, 2, 2, 2)
+        for side in (1, 2):  # the deepest levels keep the zero border they draw the layout from
+            small = torch.full((1, 3, side, side), 0.7)
+            expected = F.conv_transpose2d(small, balanced_kernel(balanced.weight), balanced.bias, 2,
+                                          balanced.padding, balanced.output_padding)
+            assert torch.equal(balanced(small), expected) and expected.shape[-1] == 2 * side
+            assert (expected - expected[..., :1, :1]).abs().max() > 1e-3
     kernel_sums = [balanced_kernel(balanced.weight)[..., r::2, c::2].sum(dim=(-2, -1)) for r in (0, 1) for c in (0, 1)]
     assert all(torch.allclose(s, kernel_sums[0], atol=1e-6) for s in kernel_sums[1:])
     fixed = balanced_kernel(balanced.weight).detach()
