@@ -652,23 +652,33 @@ def test_class_pairs_do_not_collapse_to_one_image_per_class():
     assert sorted(ratios)[1] >= 0.5, dict(zip(names, ratios))
 
 
-def test_a_generator_with_fewer_skips_is_rebuilt_as_trained(tmp_path):
-    """The saved settings carry ``skips``, so `vtgen generate` loads the network that was trained."""
+def fast_class_gan_settings(**class_gan) -> dict:
+    """The fast preset's class_gan settings with ``class_gan`` keys set over :data:`CLASS_GAN`."""
+    return objective_settings(dict(SETTINGS), {"preset": "fast", "class_gan": dict(
+        {k: v for k, v in CLASS_GAN.items() if k != "objective"}, **class_gan)}, "class_gan")
+
+
+def reloads_as_trained(training, settings: dict, folder) -> torch.nn.Module:
+    """Save ``training``'s generator as the train stage does, reload it as `vtgen generate` does, assert both give the
+    same output for one batch and code, and return the reloaded network."""
     from vtgen.io.checkpoints import load_translator, save_generator
 
-    settings = objective_settings(dict(SETTINGS), {"preset": "fast", "class_gan": dict(
-        {k: v for k, v in CLASS_GAN.items() if k != "objective"}, skips=1)}, "class_gan")
-    training = TranslatorTraining(settings, "cpu", num_classes=2)
-    training.step(*batch())
-    save_generator(tmp_path / "generator.pt", training.generator, settings, "v2t", "all")
-    loaded, _ = load_translator(tmp_path)
-    assert loaded.skips == 1
+    save_generator(folder / "generator.pt", training.generator, settings, "v2t", "all")
+    loaded, _ = load_translator(folder)
     x = batch()[0]
     z = torch.randn(len(x), loaded.latent)
     with torch.no_grad():
         assert torch.equal(loaded(x, z), training.generator.eval()(x, z))
-    everything = objective_settings(dict(SETTINGS), {"preset": "fast", "class_gan": dict(
-        {k: v for k, v in CLASS_GAN.items() if k != "objective"}, skips="all")}, "class_gan")
+    return loaded
+
+
+def test_a_generator_with_fewer_skips_is_rebuilt_as_trained(tmp_path):
+    """The saved settings carry ``skips``, so `vtgen generate` loads the network that was trained."""
+    settings = fast_class_gan_settings(skips=1)
+    training = TranslatorTraining(settings, "cpu", num_classes=2)
+    training.step(*batch())
+    assert reloads_as_trained(training, settings, tmp_path).skips == 1
+    everything = fast_class_gan_settings(skips="all")
     assert TranslatorTraining(everything, "cpu", num_classes=2).generator.skips == 4  # 32 px: depth 5
 
 
@@ -844,24 +854,16 @@ def test_balanced_upsampling_builds_every_decoder_level_and_travels_with_the_gen
     """``class_gan.upsample: balanced`` puts a balanced transposed conv in each U-Net decoder level (plain
     ``transpose`` none); `vtgen generate` reloads the network that was trained and gives the same output."""
     from vtgen.core.models import BalancedTransposedConv
-    from vtgen.io.checkpoints import load_translator, save_generator
 
     torch.manual_seed(0)
-    settings = objective_settings(dict(SETTINGS), {"preset": "fast", "class_gan": dict(
-        {k: v for k, v in CLASS_GAN.items() if k != "objective"}, upsample="balanced")}, "class_gan")
+    settings = fast_class_gan_settings(upsample="balanced")
     training = TranslatorTraining(settings, "cpu", num_classes=2)
     ups = [m for m in training.generator.modules() if isinstance(m, BalancedTransposedConv)]
     assert len(ups) == training.generator.depth
     training.step(*batch())
-    save_generator(tmp_path / "generator.pt", training.generator, settings, "v2t", "all")
-    loaded, _ = load_translator(tmp_path)
+    loaded = reloads_as_trained(training, settings, tmp_path)
     assert sum(isinstance(m, BalancedTransposedConv) for m in loaded.modules()) == loaded.depth
-    x = batch()[0]
-    z = torch.randn(len(x), loaded.latent)
-    with torch.no_grad():
-        assert torch.equal(loaded(x, z), training.generator.eval()(x, z))
-    plain = objective_settings(dict(SETTINGS), {"preset": "fast", "class_gan": dict(
-        {k: v for k, v in CLASS_GAN.items() if k != "objective"}, upsample="transpose")}, "class_gan")
+    plain = fast_class_gan_settings(upsample="transpose")
     assert not any(isinstance(m, BalancedTransposedConv)
                    for m in TranslatorTraining(plain, "cpu", num_classes=2).generator.modules())
 
