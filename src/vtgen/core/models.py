@@ -231,6 +231,36 @@ class NoiseInjection(nn.Module):
         return x + self.strength.view(1, -1, 1, 1).to(x.dtype) * noise
 
 
+def content_seeds(x: torch.Tensor) -> list[int]:
+    """One seed per image of ``x`` (N x C x H x W, model range: uint8 levels / 127.5 - 1): its levels
+    round((x + 1) * 127.5) weighted by position (1 + index mod 65521), summed, mod 2**31 - 1. Equal images get equal
+    seeds whatever batch they sit in; images that differ in one level get different ones."""
+    levels = torch.round((x.detach().float() + 1) * 127.5).to(torch.int64).flatten(1).cpu()
+    weights = torch.arange(levels.shape[1], dtype=torch.int64) % 65521 + 1
+    return ((levels * weights).sum(1) % (2**31 - 1)).tolist()
+
+
+class OutputGrain(nn.Module):
+    """clamp(y + s_c * n, -1, 1) on a generator's output y in [-1, 1]: one N(0, 1) map n per image, shared by the
+    channels, scaled per channel by a learned strength s that starts at 0 (StyleGAN's noise inputs, Karras et al.
+    2019, placed after the output's tanh so that bright, saturated fields get grain too). Training draws n from torch's
+    global generator; given ``seeds`` (eval mode: :func:`content_seeds` of the generator's input) each image's map
+    comes from its own seed, so an image gets the same grain in any batch and two images never share a map."""
+
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        self.strength = nn.Parameter(torch.zeros(channels))
+
+    def forward(self, y: torch.Tensor, seeds: list[int] | None = None) -> torch.Tensor:
+        shape = (y.shape[0], 1, y.shape[2], y.shape[3])
+        if seeds is None:
+            noise = torch.randn(shape, device=y.device, dtype=y.dtype)
+        else:
+            noise = torch.stack([torch.randn(shape[1:], generator=torch.Generator().manual_seed(seed))
+                                 for seed in seeds]).to(y.device, y.dtype)
+        return (y + self.strength.view(1, -1, 1, 1).to(y.dtype) * noise).clamp(-1.0, 1.0)
+
+
 class UNetGenerator(nn.Module):
     """U-Net mapping an ``N x in_channels x size x size`` image to ``N x out_channels x size x size`` in [-1, 1].
 
@@ -258,7 +288,8 @@ class UNetGenerator(nn.Module):
     input (BicycleGAN's "add to all", Zhu et al. 2017), so the class and the code cannot fade in the first levels.
     ``decoder_noise`` n > 0 adds a :class:`NoiseInjection` after the upsampling of each of the n finest decoder levels
     below the output (sides S/2, S/4, ...; all ``depth - 1`` of them where n is larger): per-pixel noise that can
-    place fine detail, not layout (StyleGAN).
+    place fine detail, not layout (StyleGAN). ``output_grain`` adds an :class:`OutputGrain` after the output's tanh:
+    per-pixel grain that varies per image, seeded by the input in eval mode.
     """
 
     def __init__(
@@ -277,6 +308,7 @@ class UNetGenerator(nn.Module):
         grey_output: bool = False,
         inject: int = 0,
         decoder_noise: int = 0,
+        output_grain: bool = False,
     ) -> None:
         super().__init__()
         if upsample not in UPSAMPLINGS:
@@ -341,10 +373,12 @@ class UNetGenerator(nn.Module):
                 block = nn.Sequential(*layers)
             decoder.append(block)
         self.decoder = nn.ModuleList(decoder)
+        self.grain = OutputGrain(1 if self.grey_output else out_channels) if output_grain else None
         self.apply(init_weights)
 
     def forward(self, x: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
         x = with_latent_code(self, x, z)
+        seeds = content_seeds(x) if self.grain is not None and not self.training else None
         skips = []
         code = x[:, x.shape[1] - self.inject:] if self.inject else None
         for level, block in enumerate(self.encoder):
@@ -354,6 +388,8 @@ class UNetGenerator(nn.Module):
         for level in range(1, self.depth):
             joined = torch.cat([x, skips[self.depth - 1 - level]], dim=1) if level <= self.skips else x
             x = self.decoder[level](joined)
+        if self.grain is not None:
+            x = self.grain(x, seeds)
         return x.repeat(1, self.out_channels, 1, 1) if self.grey_output else x
 
     def encode(self, x: torch.Tensor, levels: tuple[int, ...]) -> list[torch.Tensor]:
@@ -528,9 +564,9 @@ def grey_targets(images: torch.Tensor) -> bool:
 
 def build_generator(settings: dict, in_channels: int = 3) -> nn.Module:
     """The generator ``settings`` name (``generator``: 'unet', the default, or 'resnet'), from its size, ngf,
-    latent, latent_map and (the U-Net's) kernel, skips, upsample, padding, inject_every_level and decoder_noise keys. The ResNet
-    always resizes and reflects, so it ignores ``upsample`` and ``padding``; it has no skip connections, so ``skips`` other than
-    all (None) is refused, and so are ``inject_every_level`` and ``decoder_noise``. Raises ValueError for
+    latent, latent_map and (the U-Net's) kernel, skips, upsample, padding, inject_every_level, decoder_noise and output_grain
+    keys. The ResNet always resizes and reflects, so it ignores ``upsample`` and ``padding``; it has no skip connections, so
+    ``skips`` other than all (None) is refused, and so are ``inject_every_level``, ``decoder_noise`` and ``output_grain``. Raises ValueError for
     that and for an unknown kind. ``grey_output`` (absent: False) makes either draw one channel, repeated."""
     kind = settings.get("generator", "unet")
     latent, latent_map = settings.get("latent", 0), settings.get("latent_map", False)
@@ -542,7 +578,10 @@ def build_generator(settings: dict, in_channels: int = 3) -> nn.Module:
                              skips=settings.get("skips"), latent=latent,
                              upsample=settings.get("upsample", "transpose"), padding=settings.get("padding", "zeros"),
                              latent_map=latent_map, grey_output=grey, inject=inject,
-                             decoder_noise=settings.get("decoder_noise", 0))
+                             decoder_noise=settings.get("decoder_noise", 0),
+                             output_grain=bool(settings.get("output_grain", False)))
+    if settings.get("output_grain"):
+        raise ValueError(f"class_gan.output_grain is a U-Net setting: set it to false with class_gan.generator: {kind}")
     if settings.get("inject_every_level"):
         raise ValueError("class_gan.inject_every_level is a U-Net setting: set it to false with class_gan.generator: "
                          f"{kind}")

@@ -301,7 +301,7 @@ def objective_settings(settings: dict, translation: dict, objective: str, direct
     """The preset block with the class_gan keys of ``translation.class_gan`` added when that objective
     trains (the pix2pix settings stay exactly the preset's); a key given per direction ({v2t: w, t2v: w}, as
     ``nce`` is) takes ``direction``'s value. ``class_gan.iterations`` replaces the preset's iterations where
-    it is not null; ``class_gan.lr_decay`` 0, ``latent_map`` false, ``inject_every_level`` false, ``decoder_noise`` 0, ``select_every`` 0,
+    it is not null; ``class_gan.lr_decay`` 0, ``latent_map`` false, ``inject_every_level`` false, ``decoder_noise`` 0, ``output_grain`` false, ``select_every`` 0,
     ``mode_seeking_per_pair`` false, ``fixed_pattern`` 0, ``fixed_sign`` 0, ``shared_detail`` 0, ``d_antialias`` false, ``statistics_spectrum`` true, ``statistics_pool`` 1, ``views`` 1, ``pack`` 1 and ``nearest`` 0 (with its ``nearest_draws``) add no key."""
     if objective != "class_gan":
         return settings
@@ -320,8 +320,8 @@ def objective_settings(settings: dict, translation: dict, objective: str, direct
     iterations = terms.pop("iterations", None)
     if iterations is not None:
         terms["iterations"] = iterations
-    for switch in ("lr_decay", "latent_map", "inject_every_level", "decoder_noise", "select_every", "mode_seeking_per_pair", "fixed_pattern",
-                   "fixed_sign", "shared_detail", "d_antialias"):
+    for switch in ("lr_decay", "latent_map", "inject_every_level", "decoder_noise", "output_grain", "select_every",
+                   "mode_seeking_per_pair", "fixed_pattern", "fixed_sign", "shared_detail", "d_antialias"):
         if not terms.get(switch):
             terms.pop(switch, None)  # off adds no key: the settings, and the checkpoints hashed from them, stay as they were
     if terms.get("statistics_spectrum", True) is True:
