@@ -241,15 +241,17 @@ def content_seeds(x: torch.Tensor) -> list[int]:
 
 
 class OutputGrain(nn.Module):
-    """clamp(y + s_c * n, -1, 1) on a generator's output y in [-1, 1]: one N(0, 1) map n per image, shared by the
-    channels, scaled per channel by a learned strength s that starts at 0 (StyleGAN's noise inputs, Karras et al.
-    2019, placed after the output's tanh so that bright, saturated fields get grain too). Training draws n from torch's
-    global generator; given ``seeds`` (eval mode: :func:`content_seeds` of the generator's input) each image's map
-    comes from its own seed, so an image gets the same grain in any batch and two images never share a map."""
+    """clamp(y + s * n, -1, 1) on a generator's output y in [-1, 1]: one N(0, 1) map n per image, added alike to every
+    channel (grain in brightness, as a sensor's; strengths per channel on one map let V2T learn opposite signs, that is
+    coloured grain on a grey sensor: benchmarks/README.md, Sixty-ninth round), scaled by one learned strength s that
+    starts at 0 (StyleGAN's noise inputs, Karras et al. 2019, placed after the output's tanh so that bright, saturated
+    fields get grain too). Training draws n from torch's global generator; given ``seeds`` (eval mode:
+    :func:`content_seeds` of the generator's input) each image's map comes from its own seed, so an image gets the
+    same grain in any batch and two images never share a map."""
 
-    def __init__(self, channels: int) -> None:
+    def __init__(self) -> None:
         super().__init__()
-        self.strength = nn.Parameter(torch.zeros(channels))
+        self.strength = nn.Parameter(torch.zeros(()))
 
     def forward(self, y: torch.Tensor, seeds: list[int] | None = None) -> torch.Tensor:
         shape = (y.shape[0], 1, y.shape[2], y.shape[3])
@@ -258,7 +260,7 @@ class OutputGrain(nn.Module):
         else:
             noise = torch.stack([torch.randn(shape[1:], generator=torch.Generator().manual_seed(seed))
                                  for seed in seeds]).to(y.device, y.dtype)
-        return (y + self.strength.view(1, -1, 1, 1).to(y.dtype) * noise).clamp(-1.0, 1.0)
+        return (y + self.strength.to(y.dtype) * noise).clamp(-1.0, 1.0)
 
 
 class UNetGenerator(nn.Module):
@@ -373,7 +375,7 @@ class UNetGenerator(nn.Module):
                 block = nn.Sequential(*layers)
             decoder.append(block)
         self.decoder = nn.ModuleList(decoder)
-        self.grain = OutputGrain(1 if self.grey_output else out_channels) if output_grain else None
+        self.grain = OutputGrain() if output_grain else None
         self.apply(init_weights)
 
     def forward(self, x: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
