@@ -9,7 +9,7 @@ import copy
 import pytest
 import torch
 
-from test_class_gan import batch, fast_class_gan_settings, reloads_as_trained
+from test_class_gan import batch, fast_class_gan_settings, reloads_as_trained, SETTINGS
 from vtgen.core.models import build_generator, content_seeds, OutputGrain, UNetGenerator
 from vtgen.core.translator import TranslatorTraining
 from vtgen.stages.train import objective_settings
@@ -70,7 +70,6 @@ def test_eval_grain_follows_the_input_and_differs_between_inputs_and_training_dr
 
 def test_off_adds_no_settings_key_a_value_may_be_given_per_direction_and_resnet_refuses(default_params):
     from vtgen.io.params import ParamsError, validate_params
-    from test_class_gan import SETTINGS
 
     params = copy.deepcopy(default_params)
     assert params["translation"]["class_gan"]["output_grain"] is False

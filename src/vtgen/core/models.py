@@ -247,7 +247,7 @@ class OutputGrain(nn.Module):
     starts at 0 (StyleGAN's noise inputs, Karras et al. 2019, placed after the output's tanh so that bright, saturated
     fields get grain too). Training draws n from torch's global generator; given ``seeds`` (eval mode:
     :func:`content_seeds` of the generator's input) each image's map comes from its own seed, so an image gets the
-    same grain in any batch and two images never share a map."""
+    same grain in any batch and two images share a map only if their seeds collide (mod 2**31 - 1)."""
 
     def __init__(self) -> None:
         super().__init__()
