@@ -77,6 +77,18 @@ def _memorisation(classes=("denim", "felt")) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def _nearest_training(folder) -> None:
+    """The score stage's nearest-training table and picture strip: two V2T pairs of 8 px images, the first a
+    flagged copy (distance 0), the second not flagged; T2V none."""
+    rows = [{"direction": "v2t", "view": "classifier", "rank": rank, "generated_path": f"data/generated/v2t/{rank}.png",
+             "train_path": f"data/roi/train/{rank}.png", "generated_class": "denim", "train_class": "denim",
+             "distance": distance, "threshold": 0.5, "flagged": distance < 0.5} for rank, distance in enumerate((0.0, 0.7))]
+    pd.DataFrame(rows).to_parquet(folder / "nearest_training.parquet")
+    strip = np.zeros((16, 16, 3), np.uint8)
+    strip[:, :8] = 200  # the copy: the same picture above and below
+    write_image(folder / "nearest_training_v2t.png", strip)
+
+
 def _verdicts() -> list[dict]:
     """Verdicts as the score stage writes them: V2T passes, T2V warns on memorisation."""
     found = []
@@ -162,6 +174,7 @@ def fake_run(root, at_chance: bool | None = None, greyscale: bool = False, half_
     _by_class(aligned=True, classes=CLASSES, half_width=half_width).to_parquet(folders["scores"] / "by_class.parquet")
     _distribution(CLASSES).to_parquet(folders["scores"] / "distribution.parquet")
     _memorisation(CLASSES).to_parquet(folders["scores"] / "memorisation.parquet")
+    _nearest_training(folders["scores"])
     _timing(folders["scores"], "score", 2.0)
     for modality in ("visual", "tactile"):
         settings = {"real": {"final_mean": 0.71, "interval": [0.3, 0.95], "test_images": 4},
@@ -238,6 +251,8 @@ def fake_one_modality(root) -> dict:
     pd.DataFrame(columns=["direction", "scope", "candidate", "class"]).to_parquet(folders["scores"] / "by_class.parquet")
     _distribution(CLASSES).iloc[:0].to_parquet(folders["scores"] / "distribution.parquet")
     _memorisation(CLASSES).iloc[:0].to_parquet(folders["scores"] / "memorisation.parquet")
+    pd.DataFrame(columns=["direction", "view", "rank", "generated_path", "train_path", "generated_class", "train_class",
+                          "distance", "threshold", "flagged"]).to_parquet(folders["scores"] / "nearest_training.parquet")
     visual = folders["classify"] / "visual"
     _write_json(visual / "summary.json", {"modality": "visual", "status": "not applicable: classification needs at "
                                           "least 2 classes, the data has 0", "classes": [], "notes": []})
@@ -552,9 +567,10 @@ def test_html_escapes_a_class_name_and_shows_every_section(tmp_path):
         assert heading in summary and heading in page, heading
     assert "chance level" not in page  # classify gave no at_chance mark: no warning
     figures = {p.name for p in (out / "figures").glob("*.png")}
-    assert figures == {"losses.png", "scores.png", "grid_v2t.png", "grid_t2v.png", "classification.png",
-                       "timings.png"}
-    assert page.count("<img ") == 6 and not list(out.glob(".*tmp*"))
+    assert figures == {"losses.png", "scores.png", "grid_v2t.png", "grid_t2v.png", "nearest_v2t.png",
+                       "classification.png", "timings.png"}  # no T2V pairs: no nearest_t2v
+    assert page.count("<img ") == 7 and not list(out.glob(".*tmp*"))
+    assert '<img src="figures/nearest_v2t.png"' in page and "figures/nearest_v2t.png" in summary
 
 
 def test_only_a_final_epoch_at_chance_counts_as_ending_at_chance():
@@ -607,6 +623,15 @@ def test_a_missing_input_is_an_error_naming_the_file(tmp_path):
     with pytest.raises(FileNotFoundError) as error:
         report(folders, tmp_path / "out")
     assert error.value.filename == str(folders["scores"] / "by_class.parquet")
+    _by_class(aligned=True, classes=CLASSES).to_parquet(folders["scores"] / "by_class.parquet")
+    strip = folders["scores"] / "nearest_training_v2t.png"
+    write_image(strip, np.zeros((16, 24, 3), np.uint8))  # three columns where the table lists two pairs
+    with pytest.raises(ValueError, match="nearest_training_v2t.png is 24 x 16 px, not 2 rows of 2 square images"):
+        report(folders, tmp_path / "out")
+    strip.unlink()
+    with pytest.raises(ValueError, match="nearest_training_v2t.png is missing"):
+        report(folders, tmp_path / "out")
+    _nearest_training(folders["scores"])
     (folders["ingest"] / "summary.json").write_text("{not json")
     with pytest.raises(ValueError, match="summary.json: not a readable JSON file"):
         report(folders, tmp_path / "out")
@@ -686,8 +711,8 @@ def test_report_of_a_finished_run_has_every_section_and_metric(snakemake_project
     jobs = {j["job"] for j in json.loads((reports / "timings.json").read_text())["jobs"]}
     assert {"train_v2t_all", "classify_tactile", "score"} <= jobs
     figures = {p.name for p in (reports / "figures").glob("*.png")}
-    assert figures == {"losses.png", "scores.png", "grid_v2t.png", "grid_t2v.png", "classification.png",
-                       "timings.png"}
+    assert figures == {"losses.png", "scores.png", "grid_v2t.png", "grid_t2v.png", "nearest_v2t.png", "nearest_t2v.png",
+                       "classification.png", "timings.png"}
     summary = (reports / "summary.md").read_text()
     for heading in ("Data provenance", "Table I:", "Table II:", "Table III (visual)", "Table III (tactile)",
                     "Stage timings", "SYNTHETIC"):
@@ -721,7 +746,7 @@ def test_report_renders_in_headless_chromium_with_every_image_and_table(snakemak
         rows = page.evaluate("() => Array.from(document.querySelectorAll('table')).map(t => t.rows.length)")
         page.screenshot(path=str(SCREENSHOT), full_page=True)
         browser.close()
-    assert len(images) == 6
+    assert len(images) == 8
     for src, complete, width, height in images:
         assert complete and width > 0 and height > 0, src
     assert all(url.startswith("file://") for url in requests), [u for u in requests if not u.startswith("file://")]

@@ -496,3 +496,39 @@ def test_fixed_pattern_check_warns_on_a_lattice_in_every_output_not_on_grain():
 
     flat = torch.full((4, 3, 24, 24), 128, dtype=torch.uint8)
     assert dot_threshold(flat) == DOT_FLOOR
+
+
+def test_nearest_training_pairs_each_generated_image_with_its_nearest_training_image_in_rank_order():
+    """The report's memorisation picture: a generated copy of a training image comes first at distance 0,
+    flagged (nearer than any held-out image), beside that image; the rest follow by distance, and the strip
+    holds the same pictures in the same order."""
+    from vtgen.core.distribution import memorisation
+    from vtgen.stages.score import FeatureCache, nearest_training_direction
+
+    rng = np.random.default_rng(1)
+    classes = np.array(["a"] * 3 + ["b"] * 3)
+    train = torch.from_numpy(rng.integers(0, 255, (6, 3, 8, 8), dtype=np.uint8))
+    held = torch.from_numpy(rng.integers(0, 255, (6, 3, 8, 8), dtype=np.uint8))
+    generated = torch.from_numpy(rng.integers(0, 255, (6, 3, 8, 8), dtype=np.uint8))
+    generated[4] = train[2]  # a copy of training image 2
+    sets = {("generated", "all"): (generated, classes, classes), "real_train": (train, classes, classes),
+            "real_test": (held, classes, classes),
+            "paths": {("generated", "all"): [f"g{i}.png" for i in range(6)], "real_train": [f"t{i}.png" for i in range(6)]}}
+    table, strip = nearest_training_direction("v2t", sets, FeatureCache({}), count=4)
+    assert list(table["rank"]) == [0, 1, 2, 3] and set(table["view"]) == {"pixels"}
+    first = table.iloc[0]
+    assert (first["generated_path"], first["train_path"], first["distance"], bool(first["flagged"])) == ("g4.png", "t2.png", 0.0, True)
+    assert first["generated_class"] == "b" and first["train_class"] == "a"
+    assert table["distance"].is_monotonic_increasing
+    pixels = generated.double().flatten(1)
+    train_pixels = train.double().flatten(1)
+    expected = torch.cdist(pixels, train_pixels).min(dim=1).values.sort().values[:4].numpy()
+    np.testing.assert_allclose(table["distance"], expected, rtol=1e-9)
+    result = memorisation(generated, train, held)
+    assert table["threshold"].iloc[0] == pytest.approx(result.threshold, rel=1e-12)
+    assert table["flagged"].sum() == round(result.rate * len(generated))  # all flags lie in the first 4 here
+    assert strip.shape == (16, 32, 3) and strip.dtype == np.uint8
+    np.testing.assert_array_equal(strip[:8, :8], generated[4].permute(1, 2, 0).numpy())
+    np.testing.assert_array_equal(strip[8:, :8], train[2].permute(1, 2, 0).numpy())
+    second = int(table.iloc[1]["generated_path"][1:-4])
+    np.testing.assert_array_equal(strip[:8, 8:16], generated[second].permute(1, 2, 0).numpy())

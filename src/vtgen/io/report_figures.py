@@ -16,7 +16,7 @@ from vtgen.core.domain import DIRECTIONS, MODALITIES  # noqa: E402
 from vtgen.io.report_tables import settings_in, ssim_name  # noqa: E402
 from vtgen.io.tables import candidate_label  # noqa: E402
 
-FIGURES = ("losses", "scores", "grid_v2t", "grid_t2v", "classification", "timings")
+FIGURES = ("losses", "scores", "grid_v2t", "grid_t2v", "nearest_v2t", "nearest_t2v", "classification", "timings")
 
 
 def _save_figure(fig, path: Path) -> None:
@@ -66,6 +66,33 @@ def scores_figure(by_class: pd.DataFrame, path: Path, names: dict[str, str]) -> 
     _save_figure(fig, path)
 
 
+def nearest_training_figure(nearest: pd.DataFrame, pictures: np.ndarray, direction: str, path: Path) -> None:
+    """The score stage's ``nearest_training`` rows of ``direction`` with its picture strip (generated images in rank
+    order on top, the training image nearest to each below): each pair with their distance, in red where the
+    memorisation check flags it (nearer than any real held-out image)."""
+    rows = nearest[nearest["direction"] == direction].sort_values("rank")
+    side = pictures.shape[0] // 2
+    fig, axes = plt.subplots(2, len(rows), figsize=(1.5 * len(rows) + 0.6, 3.7), squeeze=False)
+    for column, (_, r) in enumerate(rows.iterrows()):
+        flagged = bool(r["flagged"])
+        for row, ax in enumerate((axes[0][column], axes[1][column])):
+            ax.imshow(pictures[row * side:(row + 1) * side, column * side:(column + 1) * side])
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_xlabel(str(r["generated_class"] if row == 0 else r["train_class"]), fontsize=7)
+            if flagged:
+                for spine in ax.spines.values():
+                    spine.set(color="tab:red", linewidth=2)
+        axes[0][column].set_title(f"{r['distance']:.3g}" + (" flagged" if flagged else ""), fontsize=8,
+                                  color="tab:red" if flagged else "black")
+    axes[0][0].set_ylabel("generated", fontsize=8)
+    axes[1][0].set_ylabel("nearest training", fontsize=8)
+    first = rows.iloc[0]
+    fig.suptitle(f"{direction.upper()}: generated test images nearest to a training image ({first['view']} view); "
+                 f"real held-out images lie at {first['threshold']:.3g} or more", fontsize=9)
+    _save_figure(fig, path)
+
+
 def accuracy_figure(accuracy: pd.DataFrame, path: Path) -> None:
     """Test accuracy per epoch per setting (mean, band min to max over seeds) and the GAN-test."""
     modalities = [m for m in MODALITIES if m in set(accuracy["modality"])]
@@ -108,6 +135,10 @@ def write_figures(data: dict, generated_dir: Path, figures: Path) -> dict[str, b
     for direction in DIRECTIONS:  # the generate stage's sheet: inputs | generated | ground truth per class
         if (generated_dir / direction / "preview.png").is_file():
             shutil.copyfile(generated_dir / direction / "preview.png", figures / f"grid_{direction}.png")
+    for direction in DIRECTIONS:  # the memorisation check's nearest generated images beside their training images
+        if direction in data["nearest_pictures"]:
+            nearest_training_figure(data["nearest_training"], data["nearest_pictures"][direction], direction,
+                                    figures / f"nearest_{direction}.png")
     tables = [e["accuracy"] for e in data["classify"].values() if not e["accuracy"].empty]
     if tables:
         accuracy_figure(pd.concat(tables, ignore_index=True), figures / "classification.png")

@@ -44,6 +44,7 @@ import yaml
 
 from vtgen.core.domain import direction_producing, DIRECTIONS, MODALITIES
 from vtgen.io.timing import read_with_times
+from vtgen.io.images import read_rgb8
 from vtgen.io.provenance import code_version
 from vtgen.io.report_figures import write_figures
 from vtgen.io.report_metrics import headline_metrics, realistic_gan_tests
@@ -63,9 +64,10 @@ CLASSIFY_BY_CLASS_NEEDS = ["modality", "setting", "class", "images", "accuracy",
 DISTRIBUTION_NEEDS = ["direction", "scope", "class", "candidate", "view", "metric", "value", "low", "high", "n",
                       "n_reference"]
 MEMORISATION_NEEDS = ["direction", "class", "view", "candidate", "rate", "nearest_is_train_share", "n", "n_train"]
+NEAREST_TRAINING_NEEDS = ["direction", "view", "rank", "generated_path", "train_path", "generated_class", "train_class",
+                          "distance", "threshold", "flagged"]
 PAIR_NEEDS = ["direction", "split", "class", "aligned"]
 TRAINING_COLUMNS = ["step", "model", "loss_d", "loss_g_gan", "loss_g_l1"]
-FIGURES = ("losses", "scores", "grid_v2t", "grid_t2v", "classification", "timings")
 
 
 @dataclass(frozen=True)
@@ -135,6 +137,25 @@ def _optional_columns(path: Path, keys: list[str], needs: list[str], what: str) 
     return read_table(path, needs, what) if len(table) else table.reindex(columns=needs)
 
 
+def nearest_pictures(scores: Path, nearest: pd.DataFrame) -> dict[str, np.ndarray]:
+    """{direction: the score stage's ``nearest_training_<direction>.png`` strip} for each direction with rows in
+    ``nearest``: 2 rows of square images (generated on top, training below), one column per row of the table.
+    ValueError naming the file where it is missing or its shape does not match the table."""
+    found = {}
+    for direction, rows in nearest.groupby("direction"):
+        path = scores / f"nearest_training_{direction}.png"
+        if not path.is_file():
+            raise ValueError(f"{path} is missing: the score stage writes it beside nearest_training.parquet, "
+                             f"which lists {len(rows)} {direction} pairs; run the score stage again")
+        pictures = read_rgb8(path).rgb
+        side = pictures.shape[0] // 2
+        if pictures.shape[0] != 2 * side or pictures.shape[1] != len(rows) * side:
+            raise ValueError(f"{path} is {pictures.shape[1]} x {pictures.shape[0]} px, not 2 rows of {len(rows)} "
+                             f"square images as nearest_training.parquet lists; run the score stage again")
+        found[str(direction)] = pictures
+    return found
+
+
 def _split_order(split: str) -> tuple:
     order = ("train", "val", "test")
     return (order.index(split) if split in order else 9, split)
@@ -198,6 +219,8 @@ def collect(params: dict, inputs: ReportInputs) -> dict:
     runs = model_runs(inputs.models)
     classify = classification(inputs.classify)
     synthetic = params["dataset"]["source"] == "synthetic"
+    nearest = read_table(inputs.scores / "nearest_training.parquet", NEAREST_TRAINING_NEEDS,
+                         "the score stage's nearest-training table")
     return {
         "title": "vtgen report" + (" (SYNTHETIC data)" if synthetic else ""), "synthetic": synthetic,
         "dataset": {"source": params["dataset"]["source"], "path": str(params["dataset"]["path"])},
@@ -215,6 +238,7 @@ def collect(params: dict, inputs: ReportInputs) -> dict:
                                    "the score stage's distribution table"),
         "memorisation": read_table(inputs.scores / "memorisation.parquet", MEMORISATION_NEEDS,
                                    "the score stage's memorisation table"),
+        "nearest_training": nearest, "nearest_pictures": nearest_pictures(inputs.scores, nearest),
         "classify": classify, "realistic_gan_test": realistic_gan_tests(classify, runs),
         "read_class": {d: read_class_counts(read_json(inputs.generated / d / "summary.json"))
                        for d in DIRECTIONS if (inputs.generated / d / "summary.json").is_file()},

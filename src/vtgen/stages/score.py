@@ -65,7 +65,7 @@ from vtgen.core.metrics import bootstrap_interval, colour_ssim, grey_ssim, pairw
 from vtgen.io.classifiers import load_classifier
 from vtgen.core.domain import DIRECTIONS
 from vtgen.io.tables import PAIR_COLUMNS, SPLIT_COLUMNS
-from vtgen.io.images import read_tiles
+from vtgen.io.images import read_tiles, write_png
 from vtgen.io.tables import candidate_label, CANDIDATES
 
 ALIGNED_METRICS = ["colour_ssim", "grey_ssim", "psnr", "ms_ssim"]
@@ -77,6 +77,10 @@ DISTRIBUTION_COLUMNS = ["direction", "scope", "class", "candidate", "view", "met
                         "n", "n_reference"]
 MEMORISATION_COLUMNS = ["direction", "class", "view", "candidate", "rate", "rate_low", "rate_high",
                         "nearest_is_train_share", "n", "n_train", "train_groups"]
+# the generated test images nearest to a training image, each beside that image (nearest_training_direction)
+NEAREST_TRAINING_COLUMNS = ["direction", "view", "rank", "generated_path", "train_path", "generated_class",
+                            "train_class", "distance", "threshold", "flagged"]
+NEAREST_SHOWN = 8  # pairs per direction: enough to tell copies from look-alikes at a glance
 # generated minus each trivial baseline, both against the same reference (all classes): paired intervals
 DIFFERENCE_COLUMNS = ["direction", "scope", "view", "metric", "baseline", "value", "low", "high", "n", "n_baseline",
                       "n_reference"]
@@ -249,9 +253,11 @@ def score_direction(direction: str, generated: pd.DataFrame, splits: pd.DataFram
                     batch_size: int, sets: dict | None = None, tiles=None) -> pd.DataFrame:
     """Per-image scores of one direction: every scope's generated test outputs and the reference candidates.
     When ``sets`` is a dict it receives the images scored, for the distribution metrics:
-    ``{(candidate, scope): (uint8 images, classes, groups)}`` plus ``"real_test"`` and ``"real_train"``.
+    ``{(candidate, scope): (uint8 images, classes, groups)}`` plus ``"real_test"`` and ``"real_train"``, and
+    ``"paths"``: ``{("generated", scope) or "real_train": the files of those images, in their order}``.
     ``tiles`` reads the tiles (a :class:`TileReader` shared by the directions; default ``read_tiles``)."""
     sets = {} if sets is None else sets
+    sets["paths"] = {}
     read = read_tiles if tiles is None else tiles
     target_modality = DIRECTIONS[direction][1]
     group_of = dict(zip(splits["path"], splits["group"]))
@@ -272,6 +278,7 @@ def score_direction(direction: str, generated: pd.DataFrame, splits: pd.DataFram
         images, classes = read(list(rows["output_path"]), size), rows["class"].to_numpy()
         groups = [group_of.get(p, p) for p in rows["input_path"]]
         sets[("generated", scope)] = (images, classes, np.array(groups))
+        sets["paths"][("generated", scope)] = list(rows["output_path"])
         tables.append(score_candidates(
             direction, scope, "generated", images, classes, list(rows["output_path"]), groups,
             list(rows["ground_truth_path"].fillna("")), real_test, size, batch_size, ssim_cache, read))
@@ -293,6 +300,7 @@ def score_direction(direction: str, generated: pd.DataFrame, splits: pd.DataFram
     real_train = real[(real["split"] == "train") & real["class"].isin(set(inputs["class"]))].sort_values("path")
     train_images = read(list(real_train["path"]), size)
     sets["real_train"] = (train_images, real_train["class"].to_numpy(), real_train["group"].to_numpy())
+    sets["paths"]["real_train"] = list(real_train["path"])
     tables.append(score_candidates(
         direction, "-", "real_train", train_images, real_train["class"].to_numpy(),
         list(real_train["path"]), list(real_train["group"]), [""] * len(real_train), real_test, size, batch_size,
@@ -693,6 +701,38 @@ def memorisation_direction(direction: str, sets: dict, cache: FeatureCache) -> p
     return pd.DataFrame(rows, columns=MEMORISATION_COLUMNS)
 
 
+def nearest_training_direction(direction: str, sets: dict, cache: FeatureCache,
+                               count: int = NEAREST_SHOWN) -> tuple[pd.DataFrame, np.ndarray | None]:
+    """The ``count`` generated test images of the pooled model nearest to a real training image, each with that
+    image (NEAREST_TRAINING_COLUMNS, ``rank`` 0 the nearest), so a person can see whether the memorisation check's
+    flags are copies or look-alikes (e.g. saturated flat fields, which all look alike). The view is the
+    memorisation verdict's: the classifier's features where ``cache`` has them, else pixels. ``threshold``: the
+    smallest distance of any real held-out image to the training set; ``flagged``: ``distance < threshold``, the
+    generated images :func:`vtgen.core.distribution.memorisation` counts. Also the pictures as one uint8
+    ``2S x rows*S x 3`` strip: the generated images in rank order on top, their training images below (None
+    where there are no rows)."""
+    key = _pooled_generated(sets)
+    view = "classifier" if "classifier" in cache.encoders else "pixels"
+    g, t, h = (sets[k][0] if view == "pixels" else cache(view, sets[k][0]) for k in (key, "real_train", "real_test"))
+    if min(len(g), len(t), len(h)) == 0:
+        return pd.DataFrame(columns=NEAREST_TRAINING_COLUMNS), None
+    nearest, which = dist.pairwise_distances(g, t).min(dim=1)
+    threshold = float(dist.pairwise_distances(h, t).min())
+    order = np.argsort(nearest.numpy(), kind="stable")[:count]
+    gen_paths, train_paths = sets["paths"][key], sets["paths"]["real_train"]
+    rows = []
+    for rank, i in enumerate(order):
+        j = int(which[i])
+        rows.append({"direction": direction, "view": view, "rank": rank, "generated_path": gen_paths[i],
+                     "train_path": train_paths[j], "generated_class": sets[key][1][i],
+                     "train_class": sets["real_train"][1][j], "distance": float(nearest[i]), "threshold": threshold,
+                     "flagged": bool(nearest[i] < threshold)})
+    shown = torch.from_numpy(order)
+    pairs = torch.cat([torch.cat(list(sets[key][0][shown]), dim=2),
+                       torch.cat(list(sets["real_train"][0][which[shown]]), dim=2)], dim=1)
+    return pd.DataFrame(rows, columns=NEAREST_TRAINING_COLUMNS), pairs.permute(1, 2, 0).contiguous().numpy()
+
+
 def diversity_direction(direction: str, sets: dict, cache: FeatureCache, seed: int) -> pd.DataFrame:
     """Within-class diversity ratio of the pooled model's generated test images (DIVERSITY_COLUMNS): per
     class, the mean pairwise distance among its generated images over the same among the real test
@@ -1068,6 +1108,7 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
     splits = read_table(pairs_dir / "splits.parquet", SPLIT_COLUMNS, "the split table of the pairs stage")
     settings = params["score"]
     tables, distributions, differences, memorised, diverse, bright, patterned = [], [], [], [], [], [], []
+    nearest_pairs, strips = [], {}
     notes, not_scored, facts = [], {}, {}
     timings = {"ssim": 0.0, "distribution": 0.0, "memorisation and diversity": 0.0}
     tiles = TileReader()
@@ -1092,6 +1133,8 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
         timings["distribution"] += time.perf_counter() - started
         started = time.perf_counter()
         memorised.append(memorisation_direction(direction, sets, cache))
+        table, strips[direction] = nearest_training_direction(direction, sets, cache)
+        nearest_pairs.append(table)
         diverse.append(diversity_direction(direction, sets, cache, seed))
         bright.append(brightness_direction(direction, sets))
         patterned.append(fixed_pattern_direction(direction, sets, seed))
@@ -1107,6 +1150,8 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
     paired = pd.concat(differences, ignore_index=True) if differences else pd.DataFrame(columns=DIFFERENCE_COLUMNS)
     brightness = pd.concat(bright, ignore_index=True) if bright else pd.DataFrame(columns=BRIGHTNESS_COLUMNS)
     patterns = pd.concat(patterned, ignore_index=True) if patterned else pd.DataFrame(columns=FIXED_PATTERN_COLUMNS)
+    nearest = (pd.concat(nearest_pairs, ignore_index=True) if nearest_pairs
+               else pd.DataFrame(columns=NEAREST_TRAINING_COLUMNS))
     generated_rows = scores.loc[scores["candidate"] == "generated", "image"]
     size = _image_side(generated_rows.iloc[0]) if len(generated_rows) else None
     found = (verdicts(distribution, memorisation, paired) + brightness_verdicts(brightness)
@@ -1129,9 +1174,12 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
     with atomic_output_dir(out_dir) as tmp:
         for name, table in (("scores", scores), ("by_class", classes_table), ("distribution", distribution),
                             ("memorisation", memorisation), ("diversity", diversity), ("differences", paired),
-                            ("brightness", brightness), ("fixed_pattern", patterns)):
+                            ("brightness", brightness), ("fixed_pattern", patterns), ("nearest_training", nearest)):
             table.to_parquet(tmp / f"{name}.parquet", index=False)
             table.to_csv(tmp / f"{name}.csv", index=False, float_format="%.6f")
+        for direction, strip in strips.items():
+            if strip is not None:
+                write_png(tmp / f"nearest_training_{direction}.png", strip)
         (tmp / "summary.json").write_text(json.dumps(_plain(summary), indent=2, allow_nan=False) + "\n")
     _print_summary(summary)
     return summary
