@@ -81,6 +81,31 @@ def test_with_strength_training_draws_vary_the_output_and_eval_mode_repeats_itse
     assert (first - second).abs().mean() > 0.05 * first.abs().mean()
 
 
+def test_eval_mode_gives_an_image_its_own_noise_whatever_its_batch_or_position():
+    """In eval mode an input translated alone, or at another place in another batch, gives the same image; two
+    different inputs at the same batch position get different maps (not one shared draw per position)."""
+    torch.manual_seed(0)
+    generator = UNetGenerator(32, 8, 4, latent=2, decoder_noise=2, dropout=0.0).eval()
+    layers = noise_layers(generator)
+    x, z = torch.rand(4, 3, 32, 32) * 2 - 1, torch.randn(4, 2)
+    maps = []
+    for layer in layers:  # what each layer adds, per image
+        layer.register_forward_hook(lambda module, args, out: maps.append(out - args[0]))
+    with torch.no_grad():
+        for layer in layers:
+            layer.strength.fill_(1.0)
+        batch = generator(x, z)
+        alone = generator(x[2:3], z[2:3])
+        swapped = generator(x[[2, 0]], z[[2, 0]])
+        torch.testing.assert_close(alone[0], batch[2], atol=1e-5, rtol=0)
+        torch.testing.assert_close(swapped[0], batch[2], atol=1e-5, rtol=0)
+        torch.testing.assert_close(swapped[1], batch[0], atol=1e-5, rtol=0)
+        maps.clear()
+        generator(x[:1], z[:1]), generator(x[1:2], z[1:2])  # each at position 0 of its own batch
+    finest_first, finest_second = maps[len(layers) - 1], maps[2 * len(layers) - 1]
+    assert (finest_first[0, 0] - finest_second[0, 0]).abs().mean() > 0.5  # unit-variance maps, not the same draw
+
+
 def test_zero_adds_no_settings_key_a_value_may_be_given_per_direction_and_resnet_refuses(default_params):
     from vtgen.io.params import ParamsError, validate_params
     params = copy.deepcopy(default_params)

@@ -215,20 +215,31 @@ def check_batchnorm_values(batch: int, map_shapes: list[tuple[int, int]], networ
 class NoiseInjection(nn.Module):
     """x + s_c * n over an N x C x H x W map: one N(0, 1) noise map n per image, shared by the channels, scaled per
     channel by a learned strength s (StyleGAN's noise inputs and their per-channel factors B, Karras et al. 2019),
-    which starts at 0 so the layer starts as the identity. Training draws n from torch's global generator; eval mode
-    uses a fixed draw (seed 0 at each call), so that translating the same batch twice gives the same images."""
+    which starts at 0 so the layer starts as the identity. Without ``seeds`` n comes from torch's global generator
+    (training); given ``seeds`` (eval mode: :func:`content_seeds` of the generator's input) each image's map comes
+    from its own seed mixed with the map's side, so an image gets the same detail in any batch, at any position,
+    and two images share a map only if their seeds collide."""
 
     def __init__(self, channels: int) -> None:
         super().__init__()
         self.strength = nn.Parameter(torch.zeros(channels))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, seeds: list[int] | None = None) -> torch.Tensor:
         shape = (x.shape[0], 1, x.shape[2], x.shape[3])
-        if self.training:
+        if seeds is None:
             noise = torch.randn(shape, device=x.device, dtype=x.dtype)
         else:
-            noise = torch.randn(shape, generator=torch.Generator().manual_seed(0)).to(x.device, x.dtype)
+            mixed = [(seed * 131 + x.shape[2]) % (2**31 - 1) for seed in seeds]  # another map at each side
+            noise = torch.stack([torch.randn(shape[1:], generator=torch.Generator().manual_seed(seed))
+                                 for seed in mixed]).to(x.device, x.dtype)
         return x + self.strength.view(1, -1, 1, 1).to(x.dtype) * noise
+
+
+def run_block(block: nn.Sequential, x: torch.Tensor, seeds: list[int] | None) -> torch.Tensor:
+    """``block``'s layers in order on ``x``, each :class:`NoiseInjection` given ``seeds``."""
+    for layer in block:
+        x = layer(x, seeds) if isinstance(layer, NoiseInjection) else layer(x)
+    return x
 
 
 def content_seeds(x: torch.Tensor) -> list[int]:
@@ -290,8 +301,9 @@ class UNetGenerator(nn.Module):
     input (BicycleGAN's "add to all", Zhu et al. 2017), so the class and the code cannot fade in the first levels.
     ``decoder_noise`` n > 0 adds a :class:`NoiseInjection` after the upsampling of each of the n finest decoder levels
     below the output (sides S/2, S/4, ...; all ``depth - 1`` of them where n is larger): per-pixel noise that can
-    place fine detail, not layout (StyleGAN). ``output_grain`` adds an :class:`OutputGrain` after the output's tanh:
-    per-pixel grain that varies per image, seeded by the input in eval mode.
+    place fine detail, not layout (StyleGAN), seeded by the input in eval mode. ``output_grain`` adds an
+    :class:`OutputGrain` after the output's tanh: per-pixel grain that varies per image, seeded by the input in eval
+    mode.
     """
 
     def __init__(
@@ -380,16 +392,16 @@ class UNetGenerator(nn.Module):
 
     def forward(self, x: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
         x = with_latent_code(self, x, z)
-        seeds = content_seeds(x) if self.grain is not None and not self.training else None
+        seeds = content_seeds(x) if (self.grain is not None or self.decoder_noise) and not self.training else None
         skips = []
         code = x[:, x.shape[1] - self.inject:] if self.inject else None
         for level, block in enumerate(self.encoder):
             x = block(x if code is None or level == 0 else with_injected(x, code))
             skips.append(x)
-        x = self.decoder[0](skips[-1])
+        x = run_block(self.decoder[0], skips[-1], seeds)
         for level in range(1, self.depth):
             joined = torch.cat([x, skips[self.depth - 1 - level]], dim=1) if level <= self.skips else x
-            x = self.decoder[level](joined)
+            x = run_block(self.decoder[level], joined, seeds)
         if self.grain is not None:
             x = self.grain(x, seeds)
         return x.repeat(1, self.out_channels, 1, 1) if self.grey_output else x
