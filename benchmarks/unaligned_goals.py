@@ -108,7 +108,8 @@ def goal_rows(goals: dict, classify: dict, conditioning: dict | None = None) -> 
             threshold += f"; real images in place of the outputs: {realistic:.3g}"
         told = conditioning.get(direction) in TOLD_THE_CLASS
         item = f"3 GAN-test ({target})" + (f", told the class ({conditioning[direction]})" if told else "")
-        rows.append((direction, item, "-" if gan is None else f"{gan:.3g}", threshold, _verdict(None if told else ok)))
+        gan_entry = {"value": gan, **((classify.get(target) or {}).get("gan_test_interval") or {})}
+        rows.append((direction, item, _fmt(gan_entry), threshold, _verdict(None if told else ok)))
         read = (classify.get(target) or {}).get("gan_test_read")  # the same model told the class read from its input
         if told and read is not None:
             ok = None if None in reals else read >= 0.8 * min(reals)
@@ -139,12 +140,14 @@ def main() -> None:
     classify = json.loads(metrics_path.read_text()).get("classify", {}) if metrics_path.is_file() else {}
     if not classify:
         print(f"note: {metrics_path} has no classify numbers: item 3 is n/a", file=sys.stderr)
-    for modality, entry in classify.items():  # the interval and n of gan_test_read, from the classify stage's summary
+    for modality, entry in classify.items():  # the GAN-tests' intervals and n, from the classify stage's summary
         summary = args.run / "data/classify" / modality / "summary.json"
-        told_read = json.loads(summary.read_text()).get("gan_test_read") if summary.is_file() else None
-        if told_read and told_read.get("interval"):
-            entry["gan_test_read_interval"] = {"low": told_read["interval"][0], "high": told_read["interval"][1],
-                                               "n": told_read["images"]}
+        found = json.loads(summary.read_text()) if summary.is_file() else {}
+        for name in ("gan_test", "gan_test_read"):
+            figure = found.get(name) or {}
+            if figure.get("interval"):
+                entry[f"{name}_interval"] = {"low": figure["interval"][0], "high": figure["interval"][1],
+                                             "n": figure["images"]}
     conditioning = {}
     for direction in MODALITY:
         record = args.run / "models" / direction / "all" / "train.json"

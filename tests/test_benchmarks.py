@@ -116,6 +116,10 @@ def test_goal_3_counts_the_figure_told_the_class_read_for_a_model_told_the_class
     interval = {"gan_test_read": 0.211, "gan_test_read_interval": {"low": 0.165, "high": 0.267, "n": 240}}
     found = goal_rows({"t2v": {}}, {"visual": {"real": 0.376, **interval}, "tactile": {"real": 0.263}}, {"t2v": "class"})
     assert [measured for _, item, measured, _, _ in found if "read" in item] == ["0.211 [0.165, 0.267], n 240"]
+    told_nothing = {"gan_test": 0.267, "gan_test_interval": {"low": 0.196, "high": 0.352, "n": 120}}
+    found = goal_rows({"v2t": {}}, {"tactile": {"real": 0.258, **told_nothing}, "visual": {"real": 0.3}}, {"v2t": "none"})
+    assert [(measured, verdict) for _, item, measured, _, verdict in found if item.startswith("3 ")] == [
+        ("0.267 [0.196, 0.352], n 120", "PASS")]  # bar 0.8 x 0.258
 
     assert rows(0.254) == {"3 GAN-test (visual), told the class (class)": "n/a",
                            "3 GAN-test (visual), told the class read from the input": "PASS"}  # bar 0.2
