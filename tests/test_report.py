@@ -409,6 +409,8 @@ def test_metrics_json_holds_headline_numbers_and_is_byte_identical_across_runs(t
     # final epoch (2), mean over seeds 0 and 1: 0.5 + 0.2 + 0.01
     assert flat(metrics["classify"]["tactile"]) == pytest.approx(
         {"real": 0.71, "real+generated": 0.81, "gan_test": 0.5, "gan_test_vs_real": 0.5 / 0.71, "seeds": 2,
+         # the classify stage's Wilson interval on the GAN-test's images, so that dvc exp show tells a change from noise
+         "gan_test_interval.low": 0.15, "gan_test_interval.high": 0.85, "gan_test_interval.images": 4,
          # real touches of the class the visual classifier reads from each test photo: (2 x 0.5 + 0.5 + 1) / 4
          "gan_test_realistic": 0.625,
          "real_test_images": 4,

@@ -102,7 +102,8 @@ def checks_headline(score_summary: dict, direction: str) -> dict:
 
 
 def classify_headline(entry: dict) -> dict:
-    """Mean final-epoch test accuracy over seeds per setting, the GAN-test, the GAN-test as a share of the
+    """Mean final-epoch test accuracy over seeds per setting, the GAN-test with its 95% Wilson interval on its
+    test images (``gan_test_interval``: low, high, images; the classify stage's), the GAN-test as a share of the
     real-only test accuracy (``gan_test_vs_real``: how recognisable generated images are against real
     ones), for a generator told the class the GAN-test of its outputs told the class read from each input
     (``gan_test_read``, the classify stage's), the test-set size, the accuracy gained from generated images per comparison
@@ -118,6 +119,10 @@ def classify_headline(entry: dict) -> dict:
     result["gan_test"] = _number(gan.mean()) if len(gan) else None
     if result["gan_test"] is not None and result.get("real"):
         result["gan_test_vs_real"] = _number(result["gan_test"] / result["real"])
+    judged = summary.get("gan_test") or {}
+    if result["gan_test"] is not None and judged.get("interval"):
+        result["gan_test_interval"] = {"low": _number(judged["interval"][0]), "high": _number(judged["interval"][1]),
+                                       "images": judged.get("images")}
     result["gan_test_read"] = _number((summary.get("gan_test_read") or {}).get("final_mean"))
     result["seeds"] = int(last["seed"].nunique())
     result["real_test_images"] = (summary.get("counts") or {}).get("real_test")
