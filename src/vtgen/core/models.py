@@ -230,9 +230,13 @@ class NoiseInjection(nn.Module):
             noise = torch.randn(shape, device=x.device, dtype=x.dtype)
         else:
             mixed = [(seed * 131 + x.shape[2]) % (2**31 - 1) for seed in seeds]  # another map at each side
-            noise = torch.stack([torch.randn(shape[1:], generator=torch.Generator().manual_seed(seed))
-                                 for seed in mixed]).to(x.device, x.dtype)
+            noise = seeded_maps(shape[1:], mixed).to(x.device, x.dtype)
         return x + self.strength.view(1, -1, 1, 1).to(x.dtype) * noise
+
+
+def seeded_maps(shape: tuple[int, ...], seeds: list[int]) -> torch.Tensor:
+    """One N(0, 1) tensor of ``shape`` per seed, each from its own generator (CPU, float32), stacked."""
+    return torch.stack([torch.randn(shape, generator=torch.Generator().manual_seed(seed)) for seed in seeds])
 
 
 def run_block(block: nn.Sequential, x: torch.Tensor, seeds: list[int] | None) -> torch.Tensor:
@@ -269,8 +273,7 @@ class OutputGrain(nn.Module):
         if seeds is None:
             noise = torch.randn(shape, device=y.device, dtype=y.dtype)
         else:
-            noise = torch.stack([torch.randn(shape[1:], generator=torch.Generator().manual_seed(seed))
-                                 for seed in seeds]).to(y.device, y.dtype)
+            noise = seeded_maps(shape[1:], seeds).to(y.device, y.dtype)
         return (y + self.strength.to(y.dtype) * noise).clamp(-1.0, 1.0)
 
 
