@@ -95,6 +95,10 @@ def test_perfect_translator_scores_one_aligned_and_beats_every_baseline(tmp_path
     table = pd.read_csv("data/scores/by_class.csv")
     assert set(table["class"]) == set(CLASSES) | {"(all)"}
     assert json.loads(Path("data/scores/summary.json").read_text())["synthetic"] is True
+    # outputs that are their ground truths follow their inputs exactly as far as the real targets do
+    following = pd.read_csv("data/scores/following.csv")
+    pivot = following.pivot_table(index=["direction", "class"], columns="candidate", values="r")
+    assert len(pivot) == 2 * 3 and np.allclose(pivot["generated"], pivot["real_paired"])
 
 
 def test_unaligned_data_has_only_set_to_set_scores(tmp_path, monkeypatch, params):
@@ -532,3 +536,34 @@ def test_nearest_training_pairs_each_generated_image_with_its_nearest_training_i
     np.testing.assert_array_equal(strip[8:, :8], train[2].permute(1, 2, 0).numpy())
     second = int(table.iloc[1]["generated_path"][1:-4])
     np.testing.assert_array_equal(strip[:8, 8:16], generated[second].permute(1, 2, 0).numpy())
+
+
+def test_following_check_tells_outputs_that_follow_their_inputs_from_one_picture_per_class():
+    """Two classes of 16 inputs, each a random 4 x 4 layout of grey blocks. Outputs that are their input's negative
+    follow it (ok); outputs that are one picture per class plus a little grain do not: `unresolved` on class pairs
+    (no real targets), `warning` where the inputs' real targets (here the inputs themselves) follow them."""
+    from vtgen.stages.score import FOLLOWING_FAMILY, following_direction, following_verdicts
+
+    generator = torch.Generator().manual_seed(0)
+    layouts = torch.randint(0, 256, (32, 1, 4, 4), generator=generator).to(torch.uint8)
+    inputs = layouts.repeat_interleave(8, dim=2).repeat_interleave(8, dim=3).expand(-1, 3, -1, -1).contiguous()
+    classes = np.array(["a", "b"] * 16)
+    groups = np.array([f"{c}/{i}" for i, c in enumerate(classes)])
+    one_picture = torch.where(torch.from_numpy(classes == "a")[:, None, None, None], inputs[0], inputs[1])
+    grain = torch.randint(0, 3, one_picture.shape, generator=generator).to(torch.uint8)
+    cases = {"negative": (255 - inputs, None, "ok"), "one picture": (one_picture + grain, None, "unresolved"),
+             "one picture, aligned": (one_picture + grain, inputs.clone(), "warning")}
+    for name, (outputs, truths, status) in cases.items():
+        sets = {("generated", "all"): (outputs, classes, groups), "inputs": {"all": inputs}, "truths": {"all": truths}}
+        table = following_direction("v2t", sets, seed=0)
+        overall = table[table["class"] == "(all)"].set_index("candidate")
+        assert set(table["class"]) == {"a", "b", "(all)"} and overall.loc["generated", "n"] == 32, name
+        assert ("real_paired" in overall.index) == (truths is not None), name
+        (found,) = following_verdicts(table)
+        assert found["family"] == FOLLOWING_FAMILY and found["status"] == status, (name, found["text"])
+        if status == "ok":
+            assert overall.loc["generated", "r"] == pytest.approx(1.0) and "follow their inputs beyond chance" in found["text"]
+        else:
+            gen = overall.loc["generated"]
+            assert gen["null_low"] < gen["r"] < gen["null_high"] and "do not follow their inputs" in found["text"], name
+    assert overall.loc["real_paired", "r"] == pytest.approx(1.0)

@@ -85,19 +85,21 @@ def distribution_headline(distribution: pd.DataFrame, memorisation: pd.DataFrame
 
 
 # the score stage's image checks: verdict metric -> metrics.json key
-CHECK_KEYS = {"brightness": "brightness_outside", "fixed_pattern": "fixed_pattern_share"}
+CHECK_KEYS = {"brightness": "brightness_outside", "fixed_pattern": "fixed_pattern_share", "following": "input_following_r"}
 
 
 def checks_headline(score_summary: dict, direction: str) -> dict:
     """The score stage's image checks, generated beside real held-out: ``brightness_outside`` (the share of test
     images darker or lighter than every real training image of their class) and ``fixed_pattern_share`` (the share
-    of the images' fine detail drawn at the same place with the same sign in every image); a key is left out where its verdict is missing."""
+    of the images' fine detail drawn at the same place with the same sign in every image) and ``input_following_r``
+    (within a class, how far outputs' distances follow their inputs', a Mantel r; ``real_heldout`` there: the real
+    targets of the same inputs, aligned data only); a key is left out where its verdict is missing."""
     found = {}
     for verdict in score_summary.get("verdicts") or []:
         key = CHECK_KEYS.get(verdict.get("metric"))
         if key and verdict.get("direction") == direction:
             found[key] = _compact({"generated": _number(verdict["generated"]),
-                                   "real_heldout": _number(verdict["real_heldout"])})
+                                   "real_heldout": _number(verdict.get("real_heldout"))})
     return found
 
 

@@ -94,6 +94,12 @@ BRIGHTNESS_FAMILY = "brightness range (pixels)"
 FIXED_PATTERN_COLUMNS = ["direction", "candidate", "share", "low", "high", "rms", "rms_low", "rms_high", "dots",
                          "dots_low", "dots_high", "n", "peak", "threshold"]
 FIXED_PATTERN_FAMILY = "fixed pattern (pixels)"
+# the input-following check: per class, candidate generated (outputs against their inputs) or real_paired (the real
+# targets of the same inputs, where every input has one: aligned data), a Mantel correlation (following_direction)
+FOLLOWING_COLUMNS = ["direction", "class", "candidate", "r", "null_low", "null_high", "p", "n", "pairs"]
+FOLLOWING_FAMILY = "input following (pixels)"
+FOLLOWING_PERMUTATIONS = 999
+FOLLOWING_LEVEL = 0.05  # one-sided: outputs follow their inputs when the permutation p is below it
 # a fixed pattern is a warning when its share lies this much above real held-out's (beyond both intervals too) and its
 # RMS is at least FIXED_RMS_FLOOR grey levels: vt60 V2T's lattice of squares, plain in its grids, has share 0.23-0.36
 # (real 0.015) and RMS 1.6-2.0; vt60 T2V's (0.022, RMS 0.85) and the embedded default V2T's (0.14, RMS 0.65) do not
@@ -254,7 +260,9 @@ def score_direction(direction: str, generated: pd.DataFrame, splits: pd.DataFram
     """Per-image scores of one direction: every scope's generated test outputs and the reference candidates.
     When ``sets`` is a dict it receives the images scored, for the distribution metrics:
     ``{(candidate, scope): (uint8 images, classes, groups)}`` plus ``"real_test"`` and ``"real_train"``, and
-    ``"paths"``: ``{("generated", scope) or "real_train": the files of those images, in their order}``.
+    ``"paths"``: ``{("generated", scope) or "real_train": the files of those images, in their order}``, and
+    ``"inputs"`` and ``"truths"``: ``{scope: the input images of that scope's generated images, in their order}``
+    and the same for their real targets (None where some input has none: class pairs).
     ``tiles`` reads the tiles (a :class:`TileReader` shared by the directions; default ``read_tiles``)."""
     sets = {} if sets is None else sets
     sets["paths"] = {}
@@ -279,6 +287,9 @@ def score_direction(direction: str, generated: pd.DataFrame, splits: pd.DataFram
         groups = [group_of.get(p, p) for p in rows["input_path"]]
         sets[("generated", scope)] = (images, classes, np.array(groups))
         sets["paths"][("generated", scope)] = list(rows["output_path"])
+        truths = list(rows["ground_truth_path"].fillna(""))
+        sets.setdefault("inputs", {})[scope] = read(list(rows["input_path"]), size)
+        sets.setdefault("truths", {})[scope] = read(truths, size) if all(truths) else None
         tables.append(score_candidates(
             direction, scope, "generated", images, classes, list(rows["output_path"]), groups,
             list(rows["ground_truth_path"].fillna("")), real_test, size, batch_size, ssim_cache, read))
@@ -904,21 +915,82 @@ def fixed_pattern_verdicts(table: pd.DataFrame) -> list[dict]:
     return found
 
 
+def following_direction(direction: str, sets: dict, seed: int) -> pd.DataFrame:
+    """Input-following check of the pooled model's generated test images (FOLLOWING_COLUMNS): within each class, do
+    two outputs lie further apart when their inputs do? :func:`vtgen.core.distribution.input_following` on grey
+    LAYOUT_SIDE x LAYOUT_SIDE means of inputs and outputs (where light and dark lie; grain does not count), per class
+    (``r``, ``n``) and an ``(all)`` row with the permutation null's 95% band and one-sided p. Where every input has a
+    real target (aligned pairs) the same for the real targets (candidate ``real_paired``): how far real data follows."""
+    key = _pooled_generated(sets)
+    scope, classes = key[1], sets[key][1]
+    inputs = dist.grey_pixels(sets["inputs"][scope], dist.LAYOUT_SIDE)
+    candidates = {"generated": sets[key][0], "real_paired": sets["truths"][scope]}
+    rows = []
+    for candidate, images in candidates.items():
+        if images is None:
+            continue
+        result = dist.input_following(inputs, dist.grey_pixels(images, dist.LAYOUT_SIDE), classes,
+                                      FOLLOWING_PERMUTATIONS, seed)
+        for name, (r, n) in result.per_class.items():
+            rows.append({"direction": direction, "class": name, "candidate": candidate, "r": r, "null_low": math.nan,
+                         "null_high": math.nan, "p": math.nan, "n": n, "pairs": n * (n - 1) // 2})
+        rows.append({"direction": direction, "class": "(all)", "candidate": candidate, "r": result.r,
+                     "null_low": result.null_low, "null_high": result.null_high, "p": result.p, "n": result.images,
+                     "pairs": result.pairs})
+    return pd.DataFrame(rows, columns=FOLLOWING_COLUMNS)
+
+
+def following_verdicts(table: pd.DataFrame) -> list[dict]:
+    """One verdict per direction from :func:`following_direction`'s ``(all)`` rows: ``ok`` when the generated outputs
+    follow their inputs beyond chance (permutation p below FOLLOWING_LEVEL); else ``warning`` where the real targets of
+    the same inputs do follow them (aligned data: the generator drops what real pairs show), ``unresolved`` where
+    there are none (class pairs: nothing in the data says how far a target should follow its input)."""
+    found = []
+    for direction in sorted(set(table["direction"])):
+        rows = table[(table["direction"] == direction) & (table["class"] == "(all)")].set_index("candidate")
+        if "generated" not in rows.index or not math.isfinite(rows.loc["generated", "r"]):
+            continue
+        gen = rows.loc["generated"]
+        follows = gen["p"] < FOLLOWING_LEVEL
+        real = rows.loc["real_paired"] if "real_paired" in rows.index else None
+        real_follows = real is not None and math.isfinite(real["r"]) and real["p"] < FOLLOWING_LEVEL
+        status = "ok" if follows else "warning" if real_follows else "unresolved"
+        reading = ("follow their inputs beyond chance" if follows else
+                   "do not follow their inputs beyond chance: within a class the generator draws much the same "
+                   "whatever the input, or varies with its noise alone")
+        reference = (f"; the real targets of the same inputs: r = {real['r']:+.3f} (p = {real['p']:.3f})"
+                     if real is not None else "; the data pairs by class only, so no real pair says how far a "
+                     "target should follow its input")
+        found.append({"direction": direction, "family": FOLLOWING_FAMILY, "metric": "following", "view": "pixels",
+                      "status": status, "generated": float(gen["r"]),
+                      "generated_interval": [float(gen["null_low"]), float(gen["null_high"])],
+                      "real_heldout": None if real is None else float(real["r"]), "p": float(gen["p"]),
+                      "n": int(gen["n"]), "pairs": int(gen["pairs"]),
+                      "text": f"{direction.upper()} {FOLLOWING_FAMILY}: within a class, the distance between two "
+                              f"generated test images follows the distance between their inputs with r = "
+                              f"{gen['r']:+.3f} (Mantel, grey {dist.LAYOUT_SIDE} x {dist.LAYOUT_SIDE} means; 95% of "
+                              f"within-class shuffles give [{gen['null_low']:+.3f}, {gen['null_high']:+.3f}], p = "
+                              f"{gen['p']:.3f}; n = {int(gen['n'])} images, {int(gen['pairs'])} pairs): the outputs "
+                              f"{reading}{reference}"})
+    return found
+
+
 def _num(value) -> float | None:
     """A finite number rounded to 6 decimals (metrics.json compares exactly), else None."""
     return None if value is None or not math.isfinite(float(value)) else round(float(value), 6)
 
 
 def goal_metrics(distribution: pd.DataFrame, memorisation: pd.DataFrame, diversity: pd.DataFrame,
-                 differences: pd.DataFrame | None = None) -> dict:
+                 differences: pd.DataFrame | None = None, following: pd.DataFrame | None = None) -> dict:
     """Issue 24's measurable goals per direction, every value with its 95% interval and n, in plain
     nested dicts for summary.json and the report's metrics.json: the diversity ratios (median over
     classes), recall and coverage of generated and real held-out, KID and FID of generated, real
     held-out and every trivial baseline (classifier view, all classes), and the memorisation rate
     (classifier view; pixels where there is no classifier) of generated and real held-out; under KID and
     FID, ``generated_minus``: generated's value minus each baseline's on the shared reference with its
-    paired interval (``differences``, :func:`paired_differences`). A value that could not be computed
-    (NaN) is left out."""
+    paired interval (``differences``, :func:`paired_differences`); ``following_pixels``: the generated images'
+    input-following r (:func:`following_direction`) with the 95% band of within-class shuffles as its interval
+    and the permutation ``p``. A value that could not be computed (NaN) is left out."""
     result: dict = {}
     for direction in sorted(set(distribution["direction"]) | set(diversity["direction"])):
         goals: dict = {}
@@ -960,6 +1032,12 @@ def goal_metrics(distribution: pd.DataFrame, memorisation: pd.DataFrame, diversi
                  for _, r in mem[mem["view"] == view].iterrows()}
         if entry:
             goals[f"memorisation_{view}"] = entry
+        if following is not None:
+            mine = following[(following["direction"] == direction) & (following["class"] == "(all)")
+                             & (following["candidate"] == "generated")]
+            for r in mine.itertuples(index=False):
+                goals["following_pixels"] = {"value": _num(r.r), "low": _num(r.null_low), "high": _num(r.null_high),
+                                             "p": _num(r.p), "n": int(r.n)}
         result[direction] = goals
     return _without_none(result)
 
@@ -1094,7 +1172,7 @@ def _greyscale(images: torch.Tensor) -> bool:
 def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, out_dir: str | Path,
               classify_dir: str | Path | None = None) -> dict:
     """Score every direction under ``generated_root``; write ``scores`` (per image), ``by_class``,
-    ``distribution``, ``memorisation``, ``diversity``, ``differences``, ``brightness`` and ``fixed_pattern`` (parquet and CSV) and ``summary.json`` (with
+    ``distribution``, ``memorisation``, ``diversity``, ``differences``, ``brightness``, ``fixed_pattern`` and ``following`` (parquet and CSV) and ``summary.json`` (with
     ``goals``: :func:`goal_metrics`) to ``out_dir``. Reads ``params["score"]``: ``batch_size``,
     ``max_per_class`` and ``fid_resamples``.
 
@@ -1107,7 +1185,7 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
     seed = SCORE_SEED
     splits = read_table(pairs_dir / "splits.parquet", SPLIT_COLUMNS, "the split table of the pairs stage")
     settings = params["score"]
-    tables, distributions, differences, memorised, diverse, bright, patterned = [], [], [], [], [], [], []
+    tables, distributions, differences, memorised, diverse, bright, patterned, following = [], [], [], [], [], [], [], []
     nearest_pairs, strips = [], {}
     notes, not_scored, facts = [], {}, {}
     timings = {"ssim": 0.0, "distribution": 0.0, "memorisation and diversity": 0.0}
@@ -1138,6 +1216,7 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
         diverse.append(diversity_direction(direction, sets, cache, seed))
         bright.append(brightness_direction(direction, sets))
         patterned.append(fixed_pattern_direction(direction, sets, seed))
+        following.append(following_direction(direction, sets, seed))
         timings["memorisation and diversity"] += time.perf_counter() - started
         facts[direction]["images_encoded"] = dict(cache.encoded)
         facts[direction]["greyscale"] = _greyscale(sets["real_test"][0])
@@ -1150,12 +1229,13 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
     paired = pd.concat(differences, ignore_index=True) if differences else pd.DataFrame(columns=DIFFERENCE_COLUMNS)
     brightness = pd.concat(bright, ignore_index=True) if bright else pd.DataFrame(columns=BRIGHTNESS_COLUMNS)
     patterns = pd.concat(patterned, ignore_index=True) if patterned else pd.DataFrame(columns=FIXED_PATTERN_COLUMNS)
+    follows = pd.concat(following, ignore_index=True) if following else pd.DataFrame(columns=FOLLOWING_COLUMNS)
     nearest = (pd.concat(nearest_pairs, ignore_index=True) if nearest_pairs
                else pd.DataFrame(columns=NEAREST_TRAINING_COLUMNS))
     generated_rows = scores.loc[scores["candidate"] == "generated", "image"]
     size = _image_side(generated_rows.iloc[0]) if len(generated_rows) else None
     found = (verdicts(distribution, memorisation, paired) + brightness_verdicts(brightness)
-             + fixed_pattern_verdicts(patterns)) if tables else []
+             + fixed_pattern_verdicts(patterns) + following_verdicts(follows)) if tables else []
     summary = {
         "synthetic": params["dataset"]["source"] == "synthetic",
         "image_size": size,
@@ -1166,7 +1246,7 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
         "scores": headline(classes_table) if tables else {},
         "distribution": facts,
         "verdicts": found,
-        "goals": goal_metrics(distribution, memorisation, diversity, paired),
+        "goals": goal_metrics(distribution, memorisation, diversity, paired, follows),
         "not_scored": not_scored,
         "notes": notes,
         "seconds": {k: round(v, 2) for k, v in timings.items()},
@@ -1174,7 +1254,8 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
     with atomic_output_dir(out_dir) as tmp:
         for name, table in (("scores", scores), ("by_class", classes_table), ("distribution", distribution),
                             ("memorisation", memorisation), ("diversity", diversity), ("differences", paired),
-                            ("brightness", brightness), ("fixed_pattern", patterns), ("nearest_training", nearest)):
+                            ("brightness", brightness), ("fixed_pattern", patterns), ("following", follows),
+                            ("nearest_training", nearest)):
             table.to_parquet(tmp / f"{name}.parquet", index=False)
             table.to_csv(tmp / f"{name}.csv", index=False, float_format="%.6f")
         for direction, strip in strips.items():
