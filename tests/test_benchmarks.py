@@ -141,3 +141,16 @@ def test_the_ablation_counts_outputs_outside_their_class_brightness_range(monkey
     context = {"train_targets": flat([200, 220]), "train_target_classes": np.array(["a", "a"]),
                "test_targets": flat([210]), "test_target_classes": np.array(["a"])}
     assert brightness_outside(flat([150, 205, 215, 240]), np.array(["a"] * 4), context) == 0.5
+
+
+def test_goal_rows_show_input_following_per_view_beside_item_1_without_counting_it(monkeypatch):
+    """unaligned_goals: the score stage's following_<view> entries become one row per view, PASS where the
+    permutation p is below 0.05 (the score stage's verdict), marked 'not counted' so the totals skip them."""
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    from unaligned_goals import goal_rows
+
+    goals = {"v2t": {"following_pixels": {"value": -0.042, "low": -0.104, "high": 0.119, "p": 0.775, "n": 120},
+                     "following_classifier": {"value": 0.115, "low": -0.091, "high": 0.107, "p": 0.018, "n": 120}}}
+    found = {item: (measured, verdict) for _, item, measured, _, verdict in goal_rows(goals, {}) if "follow" in item}
+    assert found == {"1 outputs follow their inputs within a class (pixels; not counted)": ("r -0.042 (p 0.775, n 120)", "FAIL"),
+                     "1 outputs follow their inputs within a class (classifier; not counted)": ("r 0.115 (p 0.018, n 120)", "PASS")}

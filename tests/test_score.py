@@ -97,7 +97,7 @@ def test_perfect_translator_scores_one_aligned_and_beats_every_baseline(tmp_path
     assert json.loads(Path("data/scores/summary.json").read_text())["synthetic"] is True
     # outputs that are their ground truths follow their inputs exactly as far as the real targets do
     following = pd.read_csv("data/scores/following.csv")
-    pivot = following.pivot_table(index=["direction", "class"], columns="candidate", values="r")
+    pivot = following.pivot_table(index=["direction", "view", "class"], columns="candidate", values="r")
     assert len(pivot) == 2 * 3 and np.allclose(pivot["generated"], pivot["real_paired"])
 
 
@@ -560,10 +560,21 @@ def test_following_check_tells_outputs_that_follow_their_inputs_from_one_picture
         assert set(table["class"]) == {"a", "b", "(all)"} and overall.loc["generated", "n"] == 32, name
         assert ("real_paired" in overall.index) == (truths is not None), name
         (found,) = following_verdicts(table)
-        assert found["family"] == FOLLOWING_FAMILY and found["status"] == status, (name, found["text"])
+        assert found["family"] == FOLLOWING_FAMILY.format(view="pixels") and found["status"] == status, (name, found["text"])
+        assert set(table["view"]) == {"pixels"}  # no classifiers given: the pixel view only
         if status == "ok":
             assert overall.loc["generated", "r"] == pytest.approx(1.0) and "follow their inputs beyond chance" in found["text"]
         else:
             gen = overall.loc["generated"]
             assert gen["null_low"] < gen["r"] < gen["null_high"] and "do not follow their inputs" in found["text"], name
     assert overall.loc["real_paired", "r"] == pytest.approx(1.0)
+    # the classifier view: inputs through the input modality's encoder, outputs through the target's (the cache's);
+    # outputs that are their inputs, under one encoder, follow them exactly
+    from vtgen.core.distribution import RandomEncoder
+    from vtgen.stages.score import FeatureCache
+    encoder = RandomEncoder()
+    sets = {("generated", "all"): (inputs.clone(), classes, groups), "inputs": {"all": inputs}, "truths": {"all": None}}
+    table = following_direction("v2t", sets, seed=0, cache=FeatureCache({"classifier": encoder}), input_encoder=encoder)
+    overall = table[table["class"] == "(all)"].set_index("view")
+    assert set(overall.index) == {"pixels", "classifier"} and overall.loc["classifier", "r"] == pytest.approx(1.0)
+    assert [v["family"] for v in following_verdicts(table)] == ["input following (classifier)", "input following (pixels)"]

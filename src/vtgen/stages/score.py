@@ -96,8 +96,8 @@ FIXED_PATTERN_COLUMNS = ["direction", "candidate", "share", "low", "high", "rms"
 FIXED_PATTERN_FAMILY = "fixed pattern (pixels)"
 # the input-following check: per class, candidate generated (outputs against their inputs) or real_paired (the real
 # targets of the same inputs, where every input has one: aligned data), a Mantel correlation (following_direction)
-FOLLOWING_COLUMNS = ["direction", "class", "candidate", "r", "null_low", "null_high", "p", "n", "pairs"]
-FOLLOWING_FAMILY = "input following (pixels)"
+FOLLOWING_COLUMNS = ["direction", "class", "candidate", "view", "r", "null_low", "null_high", "p", "n", "pairs"]
+FOLLOWING_FAMILY = "input following ({view})"
 FOLLOWING_PERMUTATIONS = 999
 FOLLOWING_LEVEL = 0.05  # one-sided: outputs follow their inputs when the permutation p is below it
 # a fixed pattern is a warning when its share lies this much above real held-out's (beyond both intervals too) and its
@@ -915,39 +915,48 @@ def fixed_pattern_verdicts(table: pd.DataFrame) -> list[dict]:
     return found
 
 
-def following_direction(direction: str, sets: dict, seed: int) -> pd.DataFrame:
+def following_direction(direction: str, sets: dict, seed: int, cache: FeatureCache | None = None,
+                        input_encoder=None) -> pd.DataFrame:
     """Input-following check of the pooled model's generated test images (FOLLOWING_COLUMNS): within each class, do
-    two outputs lie further apart when their inputs do? :func:`vtgen.core.distribution.input_following` on grey
-    LAYOUT_SIDE x LAYOUT_SIDE means of inputs and outputs (where light and dark lie; grain does not count), per class
-    (``r``, ``n``) and an ``(all)`` row with the permutation null's 95% band and one-sided p. Where every input has a
-    real target (aligned pairs) the same for the real targets (candidate ``real_paired``): how far real data follows."""
+    two outputs lie further apart when their inputs do? :func:`vtgen.core.distribution.input_following`, per class
+    (``r``, ``n``) and an ``(all)`` row with the permutation null's 95% band and one-sided p, in two views:
+    ``pixels``, grey LAYOUT_SIDE x LAYOUT_SIDE means of inputs and outputs (where light and dark lie; grain does not
+    count), and ``classifier``, where ``cache`` has the target modality's real-only classifier and ``input_encoder``
+    is the input modality's (each set in its own modality's features). Where every input has a real target (aligned
+    pairs) the same for the real targets (candidate ``real_paired``): how far real data follows."""
     key = _pooled_generated(sets)
     scope, classes = key[1], sets[key][1]
-    inputs = dist.grey_pixels(sets["inputs"][scope], dist.LAYOUT_SIDE)
+    inputs = sets["inputs"][scope]
+    views = {"pixels": (dist.grey_pixels(inputs, dist.LAYOUT_SIDE), lambda images: dist.grey_pixels(images, dist.LAYOUT_SIDE))}
+    if input_encoder is not None and cache is not None and "classifier" in cache.encoders:
+        views["classifier"] = (dist.image_features(input_encoder, inputs), lambda images: cache("classifier", images))
     candidates = {"generated": sets[key][0], "real_paired": sets["truths"][scope]}
     rows = []
-    for candidate, images in candidates.items():
-        if images is None:
-            continue
-        result = dist.input_following(inputs, dist.grey_pixels(images, dist.LAYOUT_SIDE), classes,
-                                      FOLLOWING_PERMUTATIONS, seed)
-        for name, (r, n) in result.per_class.items():
-            rows.append({"direction": direction, "class": name, "candidate": candidate, "r": r, "null_low": math.nan,
-                         "null_high": math.nan, "p": math.nan, "n": n, "pairs": n * (n - 1) // 2})
-        rows.append({"direction": direction, "class": "(all)", "candidate": candidate, "r": result.r,
-                     "null_low": result.null_low, "null_high": result.null_high, "p": result.p, "n": result.images,
-                     "pairs": result.pairs})
+    for view, (input_features, features_of) in views.items():
+        for candidate, images in candidates.items():
+            if images is None:
+                continue
+            result = dist.input_following(input_features, features_of(images), classes, FOLLOWING_PERMUTATIONS, seed)
+            for name, (r, n) in result.per_class.items():
+                rows.append({"direction": direction, "class": name, "candidate": candidate, "view": view, "r": r,
+                             "null_low": math.nan, "null_high": math.nan, "p": math.nan, "n": n,
+                             "pairs": n * (n - 1) // 2})
+            rows.append({"direction": direction, "class": "(all)", "candidate": candidate, "view": view, "r": result.r,
+                         "null_low": result.null_low, "null_high": result.null_high, "p": result.p,
+                         "n": result.images, "pairs": result.pairs})
     return pd.DataFrame(rows, columns=FOLLOWING_COLUMNS)
 
 
 def following_verdicts(table: pd.DataFrame) -> list[dict]:
-    """One verdict per direction from :func:`following_direction`'s ``(all)`` rows: ``ok`` when the generated outputs
-    follow their inputs beyond chance (permutation p below FOLLOWING_LEVEL); else ``warning`` where the real targets of
-    the same inputs do follow them (aligned data: the generator drops what real pairs show), ``unresolved`` where
-    there are none (class pairs: nothing in the data says how far a target should follow its input)."""
+    """One verdict per direction and view from :func:`following_direction`'s ``(all)`` rows: ``ok`` when the
+    generated outputs follow their inputs beyond chance (permutation p below FOLLOWING_LEVEL); else ``warning`` where
+    the real targets of the same inputs do follow them (aligned data: the generator drops what real pairs show),
+    ``unresolved`` where there are none (class pairs: nothing in the data says how far a target should follow its
+    input)."""
     found = []
-    for direction in sorted(set(table["direction"])):
-        rows = table[(table["direction"] == direction) & (table["class"] == "(all)")].set_index("candidate")
+    overall = table[table["class"] == "(all)"]
+    for (direction, view), rows in overall.groupby(["direction", "view"], sort=True):
+        rows = rows.set_index("candidate")
         if "generated" not in rows.index or not math.isfinite(rows.loc["generated", "r"]):
             continue
         gen = rows.loc["generated"]
@@ -955,23 +964,25 @@ def following_verdicts(table: pd.DataFrame) -> list[dict]:
         real = rows.loc["real_paired"] if "real_paired" in rows.index else None
         real_follows = real is not None and math.isfinite(real["r"]) and real["p"] < FOLLOWING_LEVEL
         status = "ok" if follows else "warning" if real_follows else "unresolved"
+        family = FOLLOWING_FAMILY.format(view=view)
+        where = (f"grey {dist.LAYOUT_SIDE} x {dist.LAYOUT_SIDE} means" if view == "pixels"
+                 else "each modality's real-only classifier features")
         reading = ("follow their inputs beyond chance" if follows else
                    "do not follow their inputs beyond chance: within a class the generator draws much the same "
                    "whatever the input, or varies with its noise alone")
         reference = (f"; the real targets of the same inputs: r = {real['r']:+.3f} (p = {real['p']:.3f})"
                      if real is not None else "; the data pairs by class only, so no real pair says how far a "
                      "target should follow its input")
-        found.append({"direction": direction, "family": FOLLOWING_FAMILY, "metric": "following", "view": "pixels",
+        found.append({"direction": direction, "family": family, "metric": f"following_{view}", "view": view,
                       "status": status, "generated": float(gen["r"]),
                       "generated_interval": [float(gen["null_low"]), float(gen["null_high"])],
                       "real_heldout": None if real is None else float(real["r"]), "p": float(gen["p"]),
                       "n": int(gen["n"]), "pairs": int(gen["pairs"]),
-                      "text": f"{direction.upper()} {FOLLOWING_FAMILY}: within a class, the distance between two "
-                              f"generated test images follows the distance between their inputs with r = "
-                              f"{gen['r']:+.3f} (Mantel, grey {dist.LAYOUT_SIDE} x {dist.LAYOUT_SIDE} means; 95% of "
-                              f"within-class shuffles give [{gen['null_low']:+.3f}, {gen['null_high']:+.3f}], p = "
-                              f"{gen['p']:.3f}; n = {int(gen['n'])} images, {int(gen['pairs'])} pairs): the outputs "
-                              f"{reading}{reference}"})
+                      "text": f"{direction.upper()} {family}: within a class, the distance between two generated test "
+                              f"images follows the distance between their inputs with r = {gen['r']:+.3f} (Mantel, "
+                              f"{where}; 95% of within-class shuffles give [{gen['null_low']:+.3f}, "
+                              f"{gen['null_high']:+.3f}], p = {gen['p']:.3f}; n = {int(gen['n'])} images, "
+                              f"{int(gen['pairs'])} pairs): the outputs {reading}{reference}"})
     return found
 
 
@@ -988,7 +999,7 @@ def goal_metrics(distribution: pd.DataFrame, memorisation: pd.DataFrame, diversi
     held-out and every trivial baseline (classifier view, all classes), and the memorisation rate
     (classifier view; pixels where there is no classifier) of generated and real held-out; under KID and
     FID, ``generated_minus``: generated's value minus each baseline's on the shared reference with its
-    paired interval (``differences``, :func:`paired_differences`); ``following_pixels``: the generated images'
+    paired interval (``differences``, :func:`paired_differences`); ``following_<view>``: the generated images'
     input-following r (:func:`following_direction`) with the 95% band of within-class shuffles as its interval
     and the permutation ``p``. A value that could not be computed (NaN) is left out."""
     result: dict = {}
@@ -1036,7 +1047,7 @@ def goal_metrics(distribution: pd.DataFrame, memorisation: pd.DataFrame, diversi
             mine = following[(following["direction"] == direction) & (following["class"] == "(all)")
                              & (following["candidate"] == "generated")]
             for r in mine.itertuples(index=False):
-                goals["following_pixels"] = {"value": _num(r.r), "low": _num(r.null_low), "high": _num(r.null_high),
+                goals[f"following_{r.view}"] = {"value": _num(r.r), "low": _num(r.null_low), "high": _num(r.null_high),
                                              "p": _num(r.p), "n": int(r.n)}
         result[direction] = goals
     return _without_none(result)
@@ -1216,7 +1227,10 @@ def run_score(params: dict, pairs_dir: str | Path, generated_root: str | Path, o
         diverse.append(diversity_direction(direction, sets, cache, seed))
         bright.append(brightness_direction(direction, sets))
         patterned.append(fixed_pattern_direction(direction, sets, seed))
-        following.append(following_direction(direction, sets, seed))
+        source = DIRECTIONS[direction][0]
+        input_encoder = (load_encoders(classify_dir, source, []).get("classifier")
+                         if "classifier" in cache.encoders else None)
+        following.append(following_direction(direction, sets, seed, cache, input_encoder))
         timings["memorisation and diversity"] += time.perf_counter() - started
         facts[direction]["images_encoded"] = dict(cache.encoded)
         facts[direction]["greyscale"] = _greyscale(sets["real_test"][0])
