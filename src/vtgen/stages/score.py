@@ -60,6 +60,7 @@ from vtgen.io.images import atomic_output_dir
 from vtgen.io.tables import read_table
 from vtgen.core import distribution as dist
 from vtgen.core import fixed_pattern as fixed
+from vtgen.core import following as follow
 from vtgen.core.classifier import wilson_interval
 from vtgen.core.metrics import bootstrap_interval, colour_ssim, grey_ssim, pairwise_colour_ssim, psnr
 from vtgen.io.classifiers import load_classifier
@@ -918,7 +919,7 @@ def fixed_pattern_verdicts(table: pd.DataFrame) -> list[dict]:
 def following_direction(direction: str, sets: dict, seed: int, cache: FeatureCache | None = None,
                         input_encoder=None) -> pd.DataFrame:
     """Input-following check of the pooled model's generated test images (FOLLOWING_COLUMNS): within each class, do
-    two outputs lie further apart when their inputs do? :func:`vtgen.core.distribution.input_following`, per class
+    two outputs lie further apart when their inputs do? :func:`vtgen.core.following.input_following`, per class
     (``r``, ``n``) and an ``(all)`` row with the permutation null's 95% band and one-sided p, in two views:
     ``pixels``, grey LAYOUT_SIDE x LAYOUT_SIDE means of inputs and outputs (where light and dark lie; grain does not
     count), and ``classifier``, where ``cache`` has the target modality's real-only classifier and ``input_encoder``
@@ -927,7 +928,7 @@ def following_direction(direction: str, sets: dict, seed: int, cache: FeatureCac
     key = _pooled_generated(sets)
     scope, classes = key[1], sets[key][1]
     inputs = sets["inputs"][scope]
-    views = {"pixels": (dist.grey_pixels(inputs, dist.LAYOUT_SIDE), lambda images: dist.grey_pixels(images, dist.LAYOUT_SIDE))}
+    views = {"pixels": (dist.grey_pixels(inputs, follow.LAYOUT_SIDE), lambda images: dist.grey_pixels(images, follow.LAYOUT_SIDE))}
     if input_encoder is not None and cache is not None and "classifier" in cache.encoders:
         views["classifier"] = (dist.image_features(input_encoder, inputs), lambda images: cache("classifier", images))
     candidates = {"generated": sets[key][0], "real_paired": sets["truths"][scope]}
@@ -936,7 +937,7 @@ def following_direction(direction: str, sets: dict, seed: int, cache: FeatureCac
         for candidate, images in candidates.items():
             if images is None:
                 continue
-            result = dist.input_following(input_features, features_of(images), classes, FOLLOWING_PERMUTATIONS, seed)
+            result = follow.input_following(input_features, features_of(images), classes, FOLLOWING_PERMUTATIONS, seed)
             for name, (r, n) in result.per_class.items():
                 rows.append({"direction": direction, "class": name, "candidate": candidate, "view": view, "r": r,
                              "null_low": math.nan, "null_high": math.nan, "p": math.nan, "n": n,
@@ -965,7 +966,7 @@ def following_verdicts(table: pd.DataFrame) -> list[dict]:
         real_follows = real is not None and math.isfinite(real["r"]) and real["p"] < FOLLOWING_LEVEL
         status = "ok" if follows else "warning" if real_follows else "unresolved"
         family = FOLLOWING_FAMILY.format(view=view)
-        where = (f"grey {dist.LAYOUT_SIDE} x {dist.LAYOUT_SIDE} means" if view == "pixels"
+        where = (f"grey {follow.LAYOUT_SIDE} x {follow.LAYOUT_SIDE} means" if view == "pixels"
                  else "each modality's real-only classifier features")
         reading = ("follow their inputs beyond chance" if follows else
                    "do not follow their inputs beyond chance: within a class the generator draws much the same "
