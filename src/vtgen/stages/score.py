@@ -928,7 +928,10 @@ def following_direction(direction: str, sets: dict, seed: int, cache: FeatureCac
     key = _pooled_generated(sets)
     scope, classes = key[1], sets[key][1]
     inputs = sets["inputs"][scope]
-    views = {"pixels": (dist.grey_pixels(inputs, follow.LAYOUT_SIDE), lambda images: dist.grey_pixels(images, follow.LAYOUT_SIDE))}
+    def layout(images: torch.Tensor) -> torch.Tensor:
+        return dist.grey_pixels(images, follow.LAYOUT_SIDE)
+
+    views = {"pixels": (layout(inputs), layout)}
     if input_encoder is not None and cache is not None and "classifier" in cache.encoders:
         views["classifier"] = (dist.image_features(input_encoder, inputs), lambda images: cache("classifier", images))
     candidates = {"generated": sets[key][0], "real_paired": sets["truths"][scope]}
