@@ -472,15 +472,16 @@ def test_first_screen_answers_whether_generated_data_helps_before_the_long_lines
     assert "<td>0.450 → 0.710 [-0.020, +0.540]: within noise</td>" in page
     assert "little room to help the low-data setting" in summary[first:verdicts]
     assert "too few groups" in summary[first:verdicts] and "&lt;b&gt;" in page[:page.index("<h2>Verdicts</h2>")]
-    # the grid: one row per direction, one column per family, each cell coloured by its status
-    # and a last column: the GAN-test (0.5 [0.15, 0.85]) against the realistic one (0.625): below, within the noise
-    assert "| direction | KID (classifier) | memorisation (classifier) | GAN-test (of the realistic) |" in summary
-    assert "| V2T | ok (0.05) | — | unresolved (0.5 of 0.625) |" in summary
-    assert "| T2V | ok (0.05) | warning (0.5) | unresolved (0.5 of 0.625) |" in summary
-    grid = page[page.index("Verdicts: direction x metric family"):page.index("<h2>Verdicts</h2>")]
-    assert '<td class="ok">ok (0.05)</td>' in grid and '<td class="warning">warning (0.5)</td>' in grid
-    assert '<td class="unresolved">unresolved (0.5 of 0.625)</td>' in grid
-    assert "The last column sets the GAN-test" in summary and "The last column sets the GAN-test" in page
+    # the grid: one row per family, one column per direction, each cell coloured by its status
+    # and a last row: the GAN-test (0.5 [0.15, 0.85]) against the realistic one (0.625): below, within the noise
+    assert "| metric family | V2T | T2V |" in summary
+    assert "| KID (classifier) | ok (0.05) | ok (0.05) |" in summary
+    assert "| memorisation (classifier) | — | warning (0.5) |" in summary
+    assert "| GAN-test (of the realistic) | unresolved (0.5 of 0.625) | unresolved (0.5 of 0.625) |" in summary
+    grid = page[page.index("Verdicts: metric family x direction"):page.index("<h2>Verdicts</h2>")]
+    assert '<tr><td>memorisation (classifier)</td><td class="not-scored">—</td><td class="warning">warning (0.5)</td></tr>' in grid
+    assert '<td class="ok">ok (0.05)</td>' in grid and '<td class="unresolved">unresolved (0.5 of 0.625)</td>' in grid
+    assert "The last row sets the GAN-test" in summary and "The last row sets the GAN-test" in page
     assert '<td class="not-scored">—</td>' in grid and "td.warning{background:#f8d7da" in page
     assert "Next step" not in summary + page  # trained on pixel pairs, GAN-test within the noise: no recipe advice
 

@@ -173,8 +173,9 @@ def recipe_advice(data: dict) -> list[str]:
 def verdict_grid(data: dict) -> dict | None:
     """The score stage's verdicts as one direction x family grid: ``{"families", "rows": [{"direction",
     "cells": [{"status", "text"}]}], "gan_test_column"}``, each cell the status (VERDICT_COLOURS) and a short value, and a last
-    column for the GAN-test against the realistic one (:func:`gan_test_verdicts`); None when the score stage
-    has no verdicts."""
+    family for the GAN-test against the realistic one (:func:`gan_test_verdicts`); None when the score stage
+    has no verdicts. The report shows it with a row per family and a column per direction (the families outnumber
+    the directions, so it fits the page)."""
     scored = data["score_summary"].get("verdicts") or []
     if not scored:
         return None
