@@ -747,6 +747,8 @@ def test_report_renders_in_headless_chromium_with_every_image_and_table(snakemak
                                "i.naturalWidth, i.naturalHeight])")
         captions = page.evaluate("() => Array.from(document.querySelectorAll('table caption')).map(c => c.textContent)")
         rows = page.evaluate("() => Array.from(document.querySelectorAll('table')).map(t => t.rows.length)")
+        # a wide table scrolls in its own box: the page itself never scrolls sideways
+        page_width = page.evaluate("() => document.documentElement.scrollWidth")
         page.screenshot(path=str(SCREENSHOT), full_page=True)
         browser.close()
     assert len(images) == 8
@@ -757,6 +759,7 @@ def test_report_renders_in_headless_chromium_with_every_image_and_table(snakemak
     for prefix in ("Table I:", "Table II:", "Table III (visual)", "Table III (tactile)", "Trained generators"):
         assert any(c.startswith(prefix) for c in captions), prefix
     assert min(rows) >= 2  # a header and at least one row each
+    assert page_width <= 1200, page_width
     assert SCREENSHOT.stat().st_size > 10_000
 
 
