@@ -85,16 +85,17 @@ def distribution_headline(distribution: pd.DataFrame, memorisation: pd.DataFrame
 
 
 # the score stage's image checks: verdict metric -> metrics.json key
-CHECK_KEYS = {"brightness": "brightness_outside", "fixed_pattern": "fixed_pattern_share", "following_pixels": "input_following_r_pixels",
-              "following_classifier": "input_following_r_classifier"}
+CHECK_KEYS = {"brightness": "brightness_outside", "fixed_pattern": "fixed_pattern_share",
+              "following_pixels": "input_following_r_pixels", "following_classifier": "input_following_r_classifier"}
 
 
 def checks_headline(score_summary: dict, direction: str) -> dict:
     """The score stage's image checks, generated beside real held-out: ``brightness_outside`` (the share of test
-    images darker or lighter than every real training image of their class) and ``fixed_pattern_share`` (the share
-    of the images' fine detail drawn at the same place with the same sign in every image) and ``input_following_r_<view>``
-    (pixels, classifier: within a class, how far outputs' distances follow their inputs', a Mantel r; ``real_heldout`` there: the real
-    targets of the same inputs, aligned data only); a key is left out where its verdict is missing."""
+    images darker or lighter than every real training image of their class), ``fixed_pattern_share`` (the share
+    of the images' fine detail drawn at the same place with the same sign in every image) and
+    ``input_following_r_<view>`` (pixels, classifier: within a class, how far the outputs' distances follow their
+    inputs', a Mantel r; its ``real_heldout``: the real targets of the same inputs, aligned data only); a key is
+    left out where its verdict is missing."""
     found = {}
     for verdict in score_summary.get("verdicts") or []:
         key = CHECK_KEYS.get(verdict.get("metric"))
