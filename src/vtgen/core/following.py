@@ -2,8 +2,8 @@
 
 The score stage's input-following check (docs/evaluation.md, Input following): a diversity ratio can be met by a
 generator that varies with its noise alone; this asks whether two outputs of a class lie further apart when their
-inputs do. Kept apart from :mod:`vtgen.core.distribution`, which training imports, so that this check can change
-without retraining a model.
+inputs do. Kept apart from :mod:`vtgen.core.distribution` (whose exact distances it uses), which training imports,
+so that this check can change without retraining a model.
 """
 
 from __future__ import annotations
@@ -12,24 +12,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
-
-def _features(values, name: str) -> np.ndarray:
-    """``N x D`` tensor or array -> float64 array; refuses other shapes and NaN or infinite values."""
-    array = values.detach().cpu().numpy() if isinstance(values, torch.Tensor) else np.asarray(values)
-    array = array.astype(np.float64)
-    if array.ndim != 2 or not np.isfinite(array).all():
-        raise ValueError(f"{name}: expected finite features N x D, got shape {array.shape}")
-    return array
-
-
-def _distances(rows: np.ndarray) -> np.ndarray:
-    """Euclidean distances of every pair of ``rows`` (direct differences, not the Gram shortcut: exact, so a copy
-    is at distance 0)."""
-    t = torch.from_numpy(rows)
-    return torch.cdist(t, t, compute_mode="donot_use_mm_for_euclid_dist").numpy()
-
+from vtgen.core.distribution import pairwise_distances
 
 LAYOUT_SIDE = 16  # the view of the input-following check: greyscale 16 x 16 means (where light and dark lie, not grain)
 
@@ -60,8 +44,7 @@ def input_following(inputs, outputs, classes, permutations: int = 999, seed: int
     (``permutations`` draws, numpy generator seeded with ``seed``); ``null_low``/``null_high`` its central ``level``
     band, ``p`` the one-sided permutation p-value (1 + draws at least r) / (1 + draws). A class whose input or
     output distances are all equal does not count; NaNs when no class counts."""
-    x, y = _features(inputs, "inputs"), _features(outputs, "outputs")
-    classes = np.asarray(classes)
+    x, y, classes = inputs, outputs, np.asarray(classes)
     if not len(x) == len(y) == len(classes):
         raise ValueError(f"the input-following check needs one class per input and output row, got "
                          f"{len(x)} inputs, {len(y)} outputs, {len(classes)} classes")
@@ -71,7 +54,7 @@ def input_following(inputs, outputs, classes, permutations: int = 999, seed: int
         if len(rows) < 3:
             continue
         upper = np.triu_indices(len(rows), 1)
-        d_in, d_out = _distances(x[rows]), _distances(y[rows])
+        d_in, d_out = (pairwise_distances(v[rows], v[rows]).numpy() for v in (x, y))
         a, b = d_in[upper], d_out[upper]
         if a.std() == 0 or b.std() == 0:
             continue
