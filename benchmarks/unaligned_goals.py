@@ -13,7 +13,9 @@ KID, FID and memorisation, each with a 95% interval and n) and, for item 3, the 
    row is followed by a "paired" row: generated's value minus the baseline's on the shared reference,
    with the score stage's paired interval (``generated_minus``); it passes when that interval lies below
    0. Two sets' separate intervals both carry the shared reference's noise, so they can overlap where
-   the difference is certain; the last line counts the goal both ways. Beside them, not counted (the
+   the difference is certain; the last line counts the goal both ways. Its target shows the same difference
+   with real held-out images in generated's place (``real_heldout_minus``): where even that interval reaches
+   0, the row cannot pass at this n whatever the generator draws. Beside them, not counted (the
    issue states item 2 over all classes): the class-wise KID's paired difference (mean over classes of
    each class's KID against that class's real images), which a set drawing one look for several
    classes cannot pass.
@@ -51,6 +53,13 @@ def _fmt(entry: dict | None) -> str:
     interval = "" if low is None or high is None else f" [{low:.3g}, {high:.3g}]"
     n = f", n {entry['n']}" if "n" in entry else f", {entry['classes']} classes" if "classes" in entry else ""
     return f"{entry['value']:.3g}{interval}{n}"
+
+
+def _real_in_place(entry: dict | None, baseline: str) -> str:
+    """The same paired difference with real held-out images in generated's place (the score stage's
+    ``real_heldout_minus``): how far real images themselves beat the baseline at this n."""
+    real = ((entry or {}).get("real_heldout_minus") or {}).get(baseline)
+    return f" (real held-out in its place: {_fmt(real)})" if real and real.get("value") is not None else ""
 
 
 def _verdict(ok: bool | None) -> str:
@@ -103,14 +112,14 @@ def goal_rows(goals: dict, classify: dict, conditioning: dict | None = None) -> 
                 if diff and diff.get("value") is not None:
                     ok = diff.get("high") is not None and diff["high"] < 0
                     rows.append((direction, f"{item} paired {metric.upper()} minus {baseline}", _fmt(diff),
-                                 "below 0", _verdict(ok)))
+                                 "below 0" + _real_in_place(entry, baseline), _verdict(ok)))
         classwise = (g.get("kid_classwise_classifier") or {}).get("generated_minus") or {}
         for baseline in ("flat_mean_colour", "mean_image"):
             diff = classwise.get(baseline)
             if diff and diff.get("value") is not None:
                 ok = diff.get("high") is not None and diff["high"] < 0
                 rows.append((direction, f"2 class-wise paired KID minus {baseline} (not counted)", _fmt(diff),
-                             "below 0", _verdict(ok)))
+                             "below 0" + _real_in_place(g.get("kid_classwise_classifier"), baseline), _verdict(ok)))
         source, target = MODALITY[direction]
         gan = (classify.get(target) or {}).get("gan_test")
         reals = [(classify.get(m) or {}).get("real") for m in (source, target)]

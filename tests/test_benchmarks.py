@@ -154,3 +154,21 @@ def test_goal_rows_show_input_following_per_view_beside_item_1_without_counting_
     found = {item: (measured, verdict) for _, item, measured, _, verdict in goal_rows(goals, {}) if "follow" in item}
     assert found == {"1 outputs follow their inputs within a class (pixels; not counted)": ("r -0.042 (p 0.775, n 120)", "FAIL"),
                      "1 outputs follow their inputs within a class (classifier; not counted)": ("r 0.115 (p 0.018, n 120)", "PASS")}
+
+
+def test_paired_goal_rows_show_real_held_out_images_in_the_outputs_place(monkeypatch):
+    """unaligned_goals: a paired row's target shows the score stage's real_heldout_minus for that baseline (how far
+    real images themselves beat it at this n); the verdict still reads generated's interval alone."""
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    from unaligned_goals import goal_rows
+
+    kid = {"generated": {"value": -0.05, "low": -0.43, "high": 0.34, "n": 72},
+           "flat_mean_colour": {"value": 0.45, "low": 0.003, "high": 0.89, "n": 72},
+           "generated_minus": {"flat_mean_colour": {"value": -0.438, "low": -1.03, "high": 0.158, "n": 72}},
+           "real_heldout_minus": {"flat_mean_colour": {"value": -0.594, "low": -1.03, "high": -0.161, "n": 72}}}
+    found = {item: (target, verdict) for _, item, _, target, verdict in goal_rows({"t2v": {"kid_classifier": kid}}, {})}
+    assert found["2 paired KID minus flat_mean_colour"] == (
+        "below 0 (real held-out in its place: -0.594 [-1.03, -0.161], n 72)", "FAIL")
+    without = dict(kid, real_heldout_minus={})
+    found = {item: target for _, item, _, target, _ in goal_rows({"t2v": {"kid_classifier": without}}, {})}
+    assert found["2 paired KID minus flat_mean_colour"] == "below 0"

@@ -317,8 +317,9 @@ def test_tile_reader_gives_read_tiles_tensors_and_decodes_each_file_once(tmp_pat
 
 def test_verdicts_read_beyond_the_noise_from_the_paired_difference():
     """Generated's and the baselines' FID intervals overlap; with the paired difference below 0 for every
-    baseline the verdict is ok, with one reaching 0 it is unresolved against that baseline; goal_metrics
-    carries the differences under generated_minus."""
+    baseline the verdict is ok, with one reaching 0 it is unresolved against that baseline, and where real
+    held-out images in generated's place do not beat that baseline beyond the noise either, the text says so;
+    goal_metrics carries the differences under generated_minus and real_heldout_minus."""
     from vtgen.stages.score import DIFFERENCE_COLUMNS, goal_metrics, verdicts
 
     values = {"generated": (176.0, 63.0, 298.0), "real_heldout": (10.0, 5.0, 20.0),
@@ -329,12 +330,15 @@ def test_verdicts_read_beyond_the_noise_from_the_paired_difference():
                            "n": 72, "n_reference": 72} for c, (v, lo, hi) in values.items()])
     memorisation = pd.DataFrame(columns=["direction", "class", "view", "candidate", "rate", "n"])
 
-    def differences(blurred_high):
-        return pd.DataFrame([{"direction": "t2v", "scope": "all", "view": "classifier", "metric": "fid",
-                              "baseline": b, "value": values["generated"][0] - values[b][0], "low": -300.0,
-                              "high": blurred_high if b == "blurred_real" else -50.0, "n": 72, "n_baseline": 72,
-                              "n_reference": 72} for b in ("nearest_neighbour", "mean_image", "flat_mean_colour",
-                                                           "blurred_real")], columns=DIFFERENCE_COLUMNS)
+    def differences(blurred_high, real_blurred_high=-20.0):
+        return pd.DataFrame([{"direction": "t2v", "scope": scope, "candidate": candidate, "view": "classifier",
+                              "metric": "fid", "baseline": b, "value": values[candidate][0] - values[b][0],
+                              "low": -300.0, "high": high if b == "blurred_real" else -50.0, "n": 72, "n_baseline": 72,
+                              "n_reference": 72}
+                             for candidate, scope, high in (("generated", "all", blurred_high),
+                                                            ("real_heldout", "-", real_blurred_high))
+                             for b in ("nearest_neighbour", "mean_image", "flat_mean_colour", "blurred_real")],
+                            columns=DIFFERENCE_COLUMNS)
 
     (without,) = verdicts(table, memorisation)
     assert without["status"] == "unresolved" and "intervals overlap" in without["text"]
@@ -342,10 +346,19 @@ def test_verdicts_read_beyond_the_noise_from_the_paired_difference():
     assert paired["status"] == "ok" and "paired difference" in paired["text"]
     (reaching,) = verdicts(table, memorisation, differences(5.0))
     assert reaching["status"] == "unresolved" and "against blurred_real (the paired" in reaching["text"]
+    assert "real held-out images" not in reaching["text"]  # real images beat blurred_real beyond the noise
+    (undecidable,) = verdicts(table, memorisation, differences(5.0, real_blurred_high=3.0))
+    assert undecidable["status"] == "unresolved"
+    assert "real held-out images in its place do not beat blurred_real beyond the noise either" in undecidable["text"]
+    (passed,) = verdicts(table, memorisation, differences(-1.0, real_blurred_high=3.0))
+    assert passed["status"] == "ok" and "real held-out" not in passed["text"]
     goals = goal_metrics(table, memorisation, pd.DataFrame(columns=["direction", "class", "view"]), differences(-1.0))
     minus = goals["t2v"]["fid_classifier"]["generated_minus"]
     assert minus["flat_mean_colour"] == {"value": 176.0 - 381.0, "low": -300.0, "high": -50.0, "n": 72,
                                          "n_reference": 72}
+    real_minus = goals["t2v"]["fid_classifier"]["real_heldout_minus"]
+    assert real_minus["blurred_real"] == {"value": 10.0 - 261.0, "low": -300.0, "high": -20.0, "n": 72,
+                                          "n_reference": 72}
 
 
 def _class_textures(classes: np.ndarray, seed: int, size: int = 32) -> torch.Tensor:
@@ -403,6 +416,14 @@ def test_class_wise_kid_exposes_a_generator_that_draws_another_class():
                          & (differences["baseline"] == "flat_mean_colour")].set_index("scope")
     assert paired.loc["right", "high"] < 0 < paired.loc["swapped", "value"]
     assert paired.loc["right", "n"] == len(labels) // 2
+    # real held-out half A in generated's place: real textures beat their flat class colour beyond the noise,
+    # class-wise and pooled, and these rows are the real images', not a generated set's
+    assert set(paired["candidate"]) == {"generated", "real_heldout"}
+    assert paired.loc["-", "candidate"] == "real_heldout" and paired.loc["-", "high"] < 0
+    real_pooled = differences[(differences["metric"] == "kid") & (differences["candidate"] == "real_heldout")
+                              & (differences["view"] == "random")].set_index("baseline")
+    assert real_pooled.loc["flat_mean_colour", "high"] < 0 and real_pooled.loc["mean_image", "high"] < 0
+    assert set(real_pooled["n"]) == {len(labels) // 2}
 
     mean, low, high = mean_over_classes([1.0, 2.0, 6.0], [3.0, 0.0, 4.0])  # sqrt(9 + 16) / 3 = 5 / 3
     assert (mean, low, high) == pytest.approx((3.0, 3.0 - 1.96 * 5 / 3, 3.0 + 1.96 * 5 / 3), rel=1e-12)

@@ -36,7 +36,8 @@ density and coverage. ``memorisation.csv`` compares each generated test image's 
 training targets with that of real held-out images (classifier features and pixels).
 ``differences.csv`` holds generated's KID and FID minus each baseline's on the same reference, with
 paired intervals (the reference's own noise cancels in a difference; two sets' separate intervals
-both carry it). The class-wise KID (``kid_classwise``, :func:`classwise_kid_rows`) averages each class's
+both carry it), and the same for real held-out half A in generated's place: how far real images
+themselves beat each baseline at this n, the most a generator could show. The class-wise KID (``kid_classwise``, :func:`classwise_kid_rows`) averages each class's
 KID over classes, so a set that draws one class's look for another cannot hide in the pooled mixture.
 ``summary.json`` holds one verdict per direction and metric family.
 """
@@ -82,9 +83,10 @@ MEMORISATION_COLUMNS = ["direction", "class", "view", "candidate", "rate", "rate
 NEAREST_TRAINING_COLUMNS = ["direction", "view", "rank", "generated_path", "train_path", "generated_class",
                             "train_class", "distance", "threshold", "flagged"]
 NEAREST_SHOWN = 8  # pairs per direction: enough to tell copies from look-alikes at a glance
-# generated minus each trivial baseline, both against the same reference (all classes): paired intervals
-DIFFERENCE_COLUMNS = ["direction", "scope", "view", "metric", "baseline", "value", "low", "high", "n", "n_baseline",
-                      "n_reference"]
+# a candidate (generated, or real held-out half A in its place) minus each trivial baseline, both against the
+# same reference (real held-out half B): paired intervals
+DIFFERENCE_COLUMNS = ["direction", "scope", "candidate", "view", "metric", "baseline", "value", "low", "high", "n",
+                      "n_baseline", "n_reference"]
 DIVERSITY_COLUMNS = ["direction", "class", "view", "ratio", "low", "high", "generated_spread", "real_spread", "n",
                      "n_real", "interval"]
 # per class: images whose brightness lies outside the class's real training images' range (brightness_direction)
@@ -600,7 +602,7 @@ def classwise_kid_rows(table: pd.DataFrame) -> pd.DataFrame:
 
 
 def classwise_kid_differences(direction: str, per_class: dict, seed: int) -> pd.DataFrame:
-    """Class-wise KID of each generated set minus each trivial baseline's (``kid_classwise`` rows of
+    """Class-wise KID of each generated set (and of real held-out half A) minus each trivial baseline's (``kid_classwise`` rows of
     DIFFERENCE_COLUMNS): per class the paired KID difference against that class's reference
     (:func:`vtgen.core.distribution.paired_kid_difference`, subsets as :func:`paired_differences`), then
     :func:`mean_over_classes`. ``per_class``: class -> {"reference": view -> features, (candidate, scope) ->
@@ -608,18 +610,18 @@ def classwise_kid_differences(direction: str, per_class: dict, seed: int) -> pd.
     out of that pair's mean."""
     found: dict = {}
     for name, sets in per_class.items():
-        for scope, baseline, view, real, a, b in _generated_against_baselines(sets["reference"], sets):
+        for candidate, scope, baseline, view, real, a, b in _against_baselines(sets["reference"], sets):
             try:
                 mean, std = dist.paired_kid_difference(real, a, b, subsets=KID_SUBSETS, seed=seed,
                                                        subset_size=kid_subset_size(real, a, b))
             except ValueError:
                 continue
-            found.setdefault((scope, view, baseline), []).append((mean, std, len(a), len(b), len(real)))
+            found.setdefault((candidate, scope, view, baseline), []).append((mean, std, len(a), len(b), len(real)))
     rows = []
-    for (scope, view, baseline), items in found.items():
+    for (candidate, scope, view, baseline), items in found.items():
         means, stds, n, n_base, n_ref = zip(*items)
         value, low, high = mean_over_classes(means, stds)
-        rows.append({"direction": direction, "scope": scope, "view": view, "metric": "kid_classwise",
+        rows.append({"direction": direction, "scope": scope, "candidate": candidate, "view": view, "metric": "kid_classwise",
                      "baseline": baseline, "value": value, "low": low, "high": high, "n": sum(n),
                      "n_baseline": sum(n_base), "n_reference": sum(n_ref)})
     return pd.DataFrame(rows, columns=DIFFERENCE_COLUMNS)
@@ -627,14 +629,15 @@ def classwise_kid_differences(direction: str, per_class: dict, seed: int) -> pd.
 
 def paired_differences(direction: str, reference: dict, candidates: dict, fid_resamples: int,
                        seed: int) -> pd.DataFrame:
-    """KID and FID of each generated set minus each trivial baseline's (BASELINES), per feature view, both
+    """KID and FID of each generated set, and of real held-out half A in its place (candidate
+    ``real_heldout``), minus each trivial baseline's (BASELINES), per feature view, both
     against the same ``reference`` features (real held-out half B, all classes): FID with a paired
     bootstrap (:func:`vtgen.core.distribution.paired_fid_difference`, ``fid_resamples`` draws), KID over
     subsets that share the reference subset (:func:`vtgen.core.distribution.paired_kid_difference`,
     mean +- 1.96 std as the KID rows). A difference whose interval lies below 0 says generated beats that
     baseline beyond the noise of this comparison. ``candidates``: (candidate, scope) -> view -> features."""
     rows = []
-    for scope, baseline, view, real, a, b in _generated_against_baselines(reference, candidates):
+    for candidate, scope, baseline, view, real, a, b in _against_baselines(reference, candidates):
         try:
             mean, std = dist.paired_kid_difference(real, a, b, subsets=KID_SUBSETS,
                                                    subset_size=kid_subset_size(real, a, b))
@@ -643,25 +646,26 @@ def paired_differences(direction: str, reference: dict, candidates: dict, fid_re
         except ValueError:
             continue
         for metric, (value, low, high) in (("kid", kid_row), ("fid", fid_row)):
-            rows.append({"direction": direction, "scope": scope, "view": view, "metric": metric,
-                         "baseline": baseline, "value": value, "low": low, "high": high, "n": len(a),
+            rows.append({"direction": direction, "scope": scope, "candidate": candidate, "view": view,
+                         "metric": metric, "baseline": baseline, "value": value, "low": low, "high": high, "n": len(a),
                          "n_baseline": len(b), "n_reference": len(real)})
     return pd.DataFrame(rows, columns=DIFFERENCE_COLUMNS)
 
 
-def _generated_against_baselines(reference: dict, sets: dict):
-    """(scope, baseline, view, reference features, generated features, baseline features) for every generated set
-    of ``sets`` ((candidate, scope) -> view -> features) and each trivial baseline (BASELINES) it holds, per
-    feature view of ``reference`` (view -> features; the spectrum is not a feature view)."""
+def _against_baselines(reference: dict, sets: dict):
+    """(candidate, scope, baseline, view, reference features, candidate features, baseline features) for every
+    generated set of ``sets`` ((candidate, scope) -> view -> features) and real held-out half A, against each
+    trivial baseline (BASELINES) it holds, per feature view of ``reference`` (view -> features; the spectrum is
+    not a feature view)."""
     for key, generated in sets.items():
-        if not isinstance(key, tuple) or key[0] != "generated":
+        if not isinstance(key, tuple) or key[0] not in ("generated", "real_heldout"):
             continue
         for baseline in BASELINES:
             base = sets.get((baseline, "-"))
             if base is None:
                 continue
             for view in [v for v in reference if v != "spectrum"]:
-                yield key[1], baseline, view, reference[view], generated[view], base[view]
+                yield key[0], key[1], baseline, view, reference[view], generated[view], base[view]
 
 
 def _pooled_generated(sets: dict):
@@ -1003,7 +1007,8 @@ def goal_metrics(distribution: pd.DataFrame, memorisation: pd.DataFrame, diversi
     held-out and every trivial baseline (classifier view, all classes), and the memorisation rate
     (classifier view; pixels where there is no classifier) of generated and real held-out; under KID and
     FID, ``generated_minus``: generated's value minus each baseline's on the shared reference with its
-    paired interval (``differences``, :func:`paired_differences`); ``following_<view>``: the generated images'
+    paired interval (``differences``, :func:`paired_differences`), and ``real_heldout_minus``: the same for real
+    held-out images in generated's place (how far real images beat each baseline at this n); ``following_<view>``: the generated images'
     input-following r (:func:`following_direction`) with the 95% band of within-class shuffles as its interval
     and the permutation ``p``. A value that could not be computed (NaN) is left out."""
     result: dict = {}
@@ -1031,13 +1036,15 @@ def goal_metrics(distribution: pd.DataFrame, memorisation: pd.DataFrame, diversi
                     entry[candidate] = {"value": _num(r["value"]), "low": _num(r["low"]), "high": _num(r["high"]),
                                         "n": int(r["n"]), "n_reference": int(r["n_reference"])}
             if differences is not None and metric in ("kid", "kid_classwise", "fid") and generated_scope:
-                paired = differences[(differences["direction"] == direction) & (differences["view"] == "classifier")
-                                     & (differences["metric"] == metric) & (differences["scope"] == generated_scope)]
-                if len(paired):
-                    entry["generated_minus"] = {r["baseline"]: {"value": _num(r["value"]), "low": _num(r["low"]),
-                                                                "high": _num(r["high"]), "n": int(r["n"]),
-                                                                "n_reference": int(r["n_reference"])}
-                                                for _, r in paired.iterrows()}
+                mine = differences[(differences["direction"] == direction) & (differences["view"] == "classifier")
+                                   & (differences["metric"] == metric)]
+                for candidate, scope in (("generated", generated_scope), ("real_heldout", "-")):
+                    paired = mine[(mine["candidate"] == candidate) & (mine["scope"] == scope)]
+                    if len(paired):
+                        entry[f"{candidate}_minus"] = {r["baseline"]: {"value": _num(r["value"]), "low": _num(r["low"]),
+                                                                       "high": _num(r["high"]), "n": int(r["n"]),
+                                                                       "n_reference": int(r["n_reference"])}
+                                                       for _, r in paired.iterrows()}
             if entry:
                 goals[f"{metric}_classifier"] = entry
         mem = memorisation[(memorisation["direction"] == direction) & (memorisation["class"] == "(all)")]
@@ -1105,10 +1112,11 @@ def verdicts(table: pd.DataFrame, memorisation: pd.DataFrame, differences: pd.Da
             lost = [c for c, v in baselines.items() if not _better(metric, generated[0], v[0])]
             generated_scope = "all" if ("generated", "all") in values else next(
                 (s for (c, s) in values if c == "generated"), None)
-            paired = differences[(differences["direction"] == direction) & (differences["metric"] == metric)
-                                 & (differences["view"] == view) & (differences["scope"] == generated_scope)]
-            paired = {r.baseline: (r.value, r.low, r.high) for r in paired.itertuples()
-                      if not math.isnan(r.high)}
+            mine = differences[(differences["direction"] == direction) & (differences["metric"] == metric)
+                               & (differences["view"] == view)]
+            paired, real_paired = ({r.baseline: (r.value, r.low, r.high) for r in part.itertuples() if not math.isnan(r.high)}
+                                   for part in (mine[(mine["candidate"] == "generated") & (mine["scope"] == generated_scope)],
+                                                mine[mine["candidate"] == "real_heldout"]))
             unresolved = [c for c, v in baselines.items() if c not in lost and (
                 paired[c][2] >= 0 if c in paired else _separated(generated[1:3], v[1:3]) is False)]
             best_name, best = min(baselines.items(), key=lambda item: (
@@ -1132,6 +1140,10 @@ def verdicts(table: pd.DataFrame, memorisation: pd.DataFrame, differences: pd.Da
             elif unresolved:
                 text = (f"beats every trivial baseline, but not beyond the noise against {', '.join(unresolved)}"
                         + (" (the paired difference's 95% interval reaches 0)" if paired else " (the intervals overlap)"))
+                undecidable = [c for c in unresolved if c in real_paired and real_paired[c][2] >= 0]
+                if undecidable:  # real images themselves are not told from it at this n: more images, not a better G
+                    text += (f"; real held-out images in its place do not beat {', '.join(undecidable)} beyond the "
+                             f"noise either")
             else:
                 text = "beats every trivial baseline" + (
                     " beyond the noise (each paired difference's 95% interval below 0)" if paired
