@@ -126,9 +126,11 @@ def test_the_quick_recipe_restores_the_short_class_pair_settings(default_params)
 def test_the_fabric_recipe_keeps_the_reader_it_was_measured_with(default_params):
     applied = with_recipe(choose(default_params, "fabric"))["translation"]
     assert applied["inferred_reader"] == "network" and applied["conditioning"] == {"v2t": "inferred", "t2v": "inferred"}
-    # and its T2V: resize decoder, no noise maps, no anti-aliasing in D (the object default's, since the Sixty-first round, was not measured there)
-    assert (applied["class_gan"]["upsample"], applied["class_gan"]["decoder_noise"], applied["class_gan"]["d_antialias"]) == (
-        "resize", 0, False)
+    # and its generators as measured in the Seventy-fifth round: V2T's resize decoder with a plain D; T2V's balanced
+    # decoder under an anti-aliased D with R1 1 (the default's bilinear decoder and noise maps lost the weave there)
+    class_gan = applied["class_gan"]
+    assert (class_gan["upsample"], class_gan["decoder_noise"], class_gan["d_antialias"], class_gan["r1"]) == (
+        {"v2t": "resize", "t2v": "balanced"}, 0, {"v2t": False, "t2v": True}, 1)
 
 
 @pytest.mark.parametrize("edit, message", [
