@@ -10,7 +10,7 @@ export PATH := $(CURDIR)/$(VENV)/bin:$(PATH)
 
 .PHONY: run test test-fast env browser cluster clean
 
-# The environment takes about 2.4 GB (torch 0.75 GB); pip's cache is left out so that it does not need twice that.
+# The environment takes about 2.4 GB (torch 0.75 GB); pip's cache is left out so that downloads are not kept a second time.
 $(STAMP): pyproject.toml constraints.txt
 	@free_mb=$$(df -Pm . | awk 'NR == 2 {print $$4}'); [ "$${free_mb:-0}" -ge 3000 ] || \
 	  echo "warning: $(CURDIR) has $${free_mb} MB free; $(VENV) needs about 2,400 MB and the install may stop with 'No space left on device'" >&2
