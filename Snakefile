@@ -3,11 +3,12 @@
 # writes dvc.yaml from, so both tools run the same commands on the same inputs and outputs.
 # Each rule's code inputs are the files its stage module imports; params.yaml is the one configuration.
 
+import os
 import sys
 
 import yaml
 from vtgen.io.params import validate_params
-from vtgen.pipeline import commit_to_dvc, outputs, reconcile, snakemake_rule, stages, write_params_records
+from vtgen.pipeline import commit_to_dvc, outputs, reconcile, snakemake_rule, stages, stale_dvc_yaml, write_params_records
 from vtgen.io.runlock import hold_run_lock, run_holder
 
 configfile: "params.yaml"
@@ -36,6 +37,10 @@ if workflow.is_main_process:
     else:
         for _line in reconcile(config):
             print(_line, file=sys.stderr)
+    # said now, not only at the end: a dvc.yaml written for other params (another dataset.source) is not recorded
+    _stale = stale_dvc_yaml(config) if os.path.isdir(".dvc") else None
+    if _stale:
+        print(_stale, file=sys.stderr)
 
 report: "workflow/report/workflow.rst"
 

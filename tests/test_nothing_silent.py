@@ -24,6 +24,7 @@ import yaml
 from conftest import ENV, REPO, make_project, run, tiny_params, write_jpegs
 from test_reliability import same_weights, snapshot
 from vtgen import cli
+from vtgen.pipeline import dvc_yaml
 
 pytestmark = pytest.mark.e2e
 
@@ -201,6 +202,33 @@ def test_images_added_replaced_or_deleted_below_dataset_path_rerun_ingest(patter
 
     (folder / "added_2.jpg").unlink()
     changes_ingest(expected | {"added_1.jpg"})
+
+
+def test_a_dvc_yaml_written_for_another_source_is_named_and_not_committed_against(pattern_project):
+    """A user who switched dataset.source without `vtgen workflow` keeps the synthetic dvc.yaml (it lists render):
+    the Snakemake run says so at its start and end and records nothing in DVC, where it used to commit its stages
+    against the wrong dvc.yaml; after `vtgen workflow` the next run records them and DVC agrees."""
+    project, data = pattern_project
+    shutil.copy(REPO / ".gitignore", project / ".gitignore")
+    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t"]
+    for command in (["git", "init", "-q"], ["dvc", "init", "-q"], ["dvc", "config", "core.analytics", "false"],
+                    ["git", "add", "-A"], git + ["commit", "-qm", "project"]):
+        run(command, project)
+    folder = data / "c0" / "visual"
+    shutil.copy(folder / "s00000.jpg", folder / "added_1.jpg")  # ingest runs again
+    stale = run(["snakemake", "--cores", "1", "data/ingest"], project).stderr
+    warning = ("vtgen: warning: dvc.yaml lists render, which these params do not have (dataset.source is 'pattern'), "
+               "so `dvc status` and `dvc exp run` would not follow this run: run `vtgen workflow` to rewrite it")
+    assert stale.count(warning) == 2, stale[-3000:]  # at the start, and at the end instead of `dvc commit`
+    assert "nothing was recorded" in stale and "recorded in DVC's cache" not in stale
+    assert not (project / "dvc.lock").exists()
+
+    params = yaml.safe_load((project / "params.yaml").read_text())
+    (project / "dvc.yaml").write_text(dvc_yaml(params, "main"))  # what `vtgen workflow` writes (run from the project)
+    shutil.copy(folder / "s00004.jpg", folder / "added_2.jpg")
+    written = run(["snakemake", "--cores", "1", "data/ingest"], project).stderr
+    assert "warning: dvc.yaml" not in written and "1 finished stages recorded in DVC's cache" in written, written[-3000:]
+    assert "ingest" not in json.loads(run(["dvc", "status", "--json", "ingest"], project).stdout)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -557,10 +557,30 @@ def job_problem(job: Job, params: dict, hasher) -> str | None:
     return problem
 
 
+def stale_dvc_yaml(params: dict) -> str | None:
+    """None when the dvc.yaml in the working folder is what `vtgen workflow` writes for ``params``; else a warning
+    naming the stages that differ and the fix (DVC would run other stages or paths than Snakemake does)."""
+    path = DVC_FILES["main"]
+    expected = dvc_yaml(params, "main")
+    written = path.read_text() if path.is_file() else None
+    if written == expected:
+        return None
+    if written is None:
+        difference = "is missing"
+    else:
+        have = set((yaml.safe_load(written) or {}).get("stages") or {})
+        want = set(yaml.safe_load(expected)["stages"])
+        parts = [f"lists {', '.join(sorted(have - want))}, which these params do not have"] if have - want else []
+        parts += [f"lacks {', '.join(sorted(want - have))}"] if want - have else []
+        difference = "; ".join(parts) or "has other commands, paths or params than these params give"
+    return (f"vtgen: warning: {path} {difference} (dataset.source is '{params['dataset']['source']}'), so `dvc status` "
+            f"and `dvc exp run` would not follow this run: run `vtgen workflow` to rewrite it")
+
+
 def commit_to_dvc(params: dict) -> str | None:
     """Record in DVC (``dvc commit``) every main-job stage whose outputs match their content records, so that
-    ``dvc status`` agrees with the Snakemake run that made them; a line saying what was done, None outside a
-    DVC project."""
+    ``dvc status`` agrees with the Snakemake run that made them; a line saying what was done (or, when dvc.yaml
+    was written for other params, why nothing was), None outside a DVC project."""
     import shutil
     import subprocess
     import time
@@ -569,13 +589,16 @@ def commit_to_dvc(params: dict) -> str | None:
 
     if not Path(".dvc").is_dir() or shutil.which("dvc") is None:
         return None
+    stale = stale_dvc_yaml(params)
+    if stale:
+        return f"{stale}, then `dvc commit --force` to record this run's stages in DVC (nothing was recorded)"
     started = time.perf_counter()
     hasher = Hasher(".")
     current = [job.name for job in jobs(params, "main") if job_problem(job, params, hasher) is None]
     hasher.save()
     if not current:
         return None
-    done = subprocess.run(["dvc", "commit", "--force", "--quiet", *current], capture_output=True, text=True)
+    done = subprocess.run(["dvc", "commit", "--force", *current], capture_output=True, text=True)
     seconds = time.perf_counter() - started
     if done.returncode != 0:
         return (f"vtgen: warning: `dvc commit` of the finished stages failed ({(done.stderr or done.stdout).strip()}); "
